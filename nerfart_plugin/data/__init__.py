@@ -1,0 +1,36 @@
+"""Data: scene loaders (registry kind ``data``), rays, camera paths, the datamodule.
+
+``load_scene(kind, path, **opts)`` dispatches to the loader registered as
+``kind`` ("h3ds", "llff", "selfie") and returns a validated :class:`Scene`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.data import h3ds, llff, selfie  # noqa: F401  (register loaders)
+from nerfart_plugin.data.rays import ndc_rays, pixel_rays, rays_for_views
+
+
+def load_scene(kind: str, path: Any, **opts: Any) -> Scene:
+    """Load a scene with the loader registered as ``data``/``kind``.
+
+    Common options: ``resolution`` (long image side in pixels; images resized with
+    antialiasing, K scaled exactly), ``holdout_every`` (default 8: ``val_ids =
+    ids[::8]``), ``use_masks`` (default True). See each loader for the rest.
+    """
+    from nerfart_plugin import registry
+
+    return registry.get("data", kind)(path, **opts)
+
+
+__all__ = ["Scene", "load_scene", "pixel_rays", "ndc_rays", "rays_for_views"]
+
+
+def __getattr__(name: str):  # lazy: keep `import nerfart_plugin.data` free of lightning
+    if name in ("SceneDataModule", "default_scene_path"):
+        from nerfart_plugin.data import datamodule
+
+        return getattr(datamodule, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,151 @@
+"""Image/matte listing, reading and resizing shared by the loaders.
+
+Every failure is a :class:`~nerfart_plugin.errors.DataError` naming the file and
+the fix.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from PIL import Image
+
+from nerfart_plugin.errors import DataError
+
+log = logging.getLogger(__name__)
+
+IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+
+def list_images(folder: Path, notes: Optional[list[str]] = None) -> list[Path]:
+    """Sorted image files in ``folder``; other files are skipped and noted.
+
+    Raises:
+        DataError: folder missing or holding no image.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError(f"Image folder {folder} does not exist: point data.path at a scene folder that contains it.")
+    files = sorted(p for p in folder.iterdir() if p.is_file() and not p.name.startswith("."))
+    images = [p for p in files if p.suffix.lower() in IMAGE_EXTS]
+    others = [p.name for p in files if p.suffix.lower() not in IMAGE_EXTS]
+    if others and notes is not None:
+        msg = f"ignored {len(others)} non-image file(s) in {folder.name}/: {', '.join(others[:5])}"
+        notes.append(msg)
+    if not images:
+        raise DataError(
+            f"No images ({'/'.join(IMAGE_EXTS)}) found in {folder}: put the views there or fix data.path."
+        )
+    return images
+
+
+def target_size(w: int, h: int, resolution: Optional[int]) -> tuple[int, int]:
+    """(W', H') with the long side equal to ``resolution`` (unchanged if None)."""
+    if not resolution:
+        return w, h
+    s = float(resolution) / max(w, h)
+    return max(1, int(round(w * s))), max(1, int(round(h * s)))
+
+
+def read_image(path: Path, size: Optional[tuple[int, int]] = None, gray: bool = False) -> np.ndarray:
+    """Read an image as float32 in [0,1]: [H,W,3] (or [H,W] when ``gray``).
+
+    Resizing to ``size`` = (W, H) uses an antialiasing (Lanczos/box) filter.
+
+    Raises:
+        DataError: unreadable, truncated or zero-length file.
+    """
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            if gray:
+                im = im.convert("L") if im.mode not in ("L", "I;16", "I", "F") else im
+                if im.mode != "L":
+                    arr = np.asarray(im, dtype=np.float32)
+                    im = Image.fromarray((arr / max(arr.max(), 1.0) * 255).astype(np.uint8))
+            else:
+                im = im.convert("RGB")
+            if size is not None and im.size != tuple(size):
+                im = im.resize(tuple(size), Image.Resampling.LANCZOS)
+            arr = np.asarray(im, dtype=np.float32) / 255.0
+    except (OSError, ValueError, SyntaxError) as e:
+        raise DataError(
+            f"Cannot read image {path} ({e.__class__.__name__}: {e}): the file is corrupt or truncated; "
+            "re-export or delete it (and its camera) from the scene."
+        ) from e
+    return np.clip(arr, 0.0, 1.0)
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(W, H) from the header; DataError for unreadable files."""
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, ValueError, SyntaxError) as e:
+        raise DataError(f"Cannot read image {path} ({e}): the file is corrupt; re-export or remove it.") from e
+
+
+def read_image_set(
+    paths: Sequence[Path], resolution: Optional[int], gray: bool = False, what: str = "image"
+) -> tuple[np.ndarray, tuple[int, int], tuple[int, int]]:
+    """Read images of one common size, resized so the long side is ``resolution``.
+
+    Returns:
+        (array [N,H',W',3] or [N,H',W'], original (W,H), new (W',H')).
+
+    Raises:
+        DataError: mixed sizes (naming an offending file) or unreadable files.
+    """
+    sizes = [image_size(p) for p in paths]
+    first = sizes[0]
+    for p, s in zip(paths, sizes):
+        if s != first:
+            raise DataError(
+                f"Mixed {what} sizes: {paths[0].name} is {first[0]}x{first[1]} but {p} is {s[0]}x{s[1]}; "
+                "all views of a scene must share one size: resize or remove the odd one(s)."
+            )
+    new = target_size(first[0], first[1], resolution)
+    arr = np.stack([read_image(p, new, gray=gray) for p in paths])
+    return arr, first, new
+
+
+def find_mask_folder(root: Path) -> Optional[Path]:
+    """``matte/`` or ``mask/`` (or ``masks/``) under ``root`` if present."""
+    for name in ("matte", "mask", "masks"):
+        if (root / name).is_dir():
+            return root / name
+    return None
+
+
+def match_masks(images: Sequence[Path], mask_files: Sequence[Path], notes: list[str]) -> list[Path]:
+    """Pick the matte for each image.
+
+    Same count -> by sorted order. Otherwise by file stem (``000001.png`` image ->
+    ``000001.png`` matte); extra mattes are ignored and noted.
+
+    Raises:
+        DataError: when some image has no matte that can be identified.
+    """
+    if len(mask_files) == len(images):
+        return list(mask_files)
+    by_stem = {p.stem: p for p in mask_files}
+    missing = [p.name for p in images if p.stem not in by_stem]
+    folder = mask_files[0].parent if mask_files else "?"
+    if missing:
+        raise DataError(
+            f"{len(images)} images but {len(mask_files)} mattes in {folder}, and the mattes cannot be matched "
+            f"by name (no matte for {', '.join(missing[:3])}); give each image a matte of the same name, "
+            "or set data.use_masks=false."
+        )
+    chosen = [by_stem[p.stem] for p in images]
+    extra = sorted(set(p.name for p in mask_files) - set(p.name for p in chosen))
+    msg = (
+        f"{len(mask_files)} mattes for {len(images)} images in {Path(folder).name}/: matched by file name, "
+        f"ignored {len(extra)} extra matte(s) ({', '.join(extra[:5])}{'...' if len(extra) > 5 else ''})"
+    )
+    notes.append(msg)
+    return chosen

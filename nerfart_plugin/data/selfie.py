@@ -1,0 +1,389 @@
+"""Selfie videos / frame folders -> posed scene via COLMAP SfM (registry data "selfie").
+
+Pipeline, as in NeRF-Art's selfie captures:
+
+1. frames: a video is sampled at ``fps`` (15) frames per second, evenly
+   subsampled to at most ``max_frames`` (100) and resized so the long side is
+   ``frame_long_side`` (480 -> 270x480 portrait / 480x270 landscape). A folder of
+   frames (``folder/`` or ``folder/images/``) is subsampled/resized the same way.
+2. SfM with pycolmap: SIFT extraction with ONE camera shared by all frames,
+   sequential matching (``matcher="exhaustive"`` for unordered frames),
+   incremental mapping. Frames and model are cached in
+   ``<cache_dir or next to the input>/nerfart_cache/<name>_<hash>/`` keyed by a
+   SHA-256 of the input and the settings; a rerun with the same input loads it.
+3. An existing COLMAP model (``folder/sparse/0`` with ``folder/images/``) is
+   used as is, without re-running SfM.
+
+Capture: ``"object"`` if mattes (``matte/``/``mask/``) exist next to the frames,
+else ``"unbounded"`` for inward-facing trajectories, else ``"forward_facing"``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+
+from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
+from nerfart_plugin.data.common import make_scene, options_key, require_dir
+from nerfart_plugin.data.images import find_mask_folder, list_images, match_masks, read_image, target_size
+from nerfart_plugin.data.llff import forward_facing_normalization
+from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
+from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.errors import DataError
+from nerfart_plugin.registry import register
+from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
+
+log = logging.getLogger(__name__)
+
+VIDEO_EXTS = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+SFM_HINT = (
+    "try: a video with more overlap between frames (slower motion, no motion blur), more frames "
+    "(data.max_frames / data.fps), a higher data.frame_long_side, or data.matcher=exhaustive"
+)
+
+
+# --------------------------------------------------------------------------- frames
+def _save_png(arr_u8: np.ndarray, path: Path) -> None:
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(arr_u8).save(tmp, format="PNG")
+
+
+def extract_frames(
+    video: Path, out_dir: Path, fps: float = 15.0, max_frames: int = 100, long_side: Optional[int] = 480
+) -> list[dict]:
+    """Sample ``video`` at ``fps``, keep at most ``max_frames`` evenly, resize, save PNGs.
+
+    Returns:
+        per kept frame ``{"name": "frame_00012.png", "time": seconds}``.
+
+    Raises:
+        DataError: unreadable, zero-length or frameless video.
+    """
+    import av
+    from PIL import Image
+
+    video = Path(video)
+    if not video.is_file() or video.stat().st_size == 0:
+        raise DataError(f"Video {video} is missing or empty (0 bytes): re-copy the file or fix data.path.")
+    kept: list[tuple[float, Image.Image]] = []
+    try:
+        with av.open(str(video)) as container:
+            if not container.streams.video:
+                raise DataError(f"{video} has no video stream: give a video file or a folder of frames.")
+            stream = container.streams.video[0]
+            next_t = 0.0
+            for frame in container.decode(stream):
+                t = float(frame.time) if frame.time is not None else len(kept) / fps
+                if t + 1e-6 < next_t:
+                    continue
+                img = frame.to_image()
+                if long_side:
+                    img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
+                kept.append((t, img))
+                next_t = t + 1.0 / fps - 0.5 / 1000.0
+    except DataError:
+        raise
+    except Exception as e:  # av.error.* and friends
+        raise DataError(f"Cannot decode video {video} ({e.__class__.__name__}: {e}): re-encode it (e.g. ffmpeg -i in.mov out.mp4).") from e
+    if not kept:
+        raise DataError(f"Video {video} has no decodable frames: re-encode it or extract frames into a folder.")
+    if len(kept) > max_frames:
+        idx = np.unique(np.round(np.linspace(0, len(kept) - 1, max_frames)).astype(int))
+        kept = [kept[i] for i in idx]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for i, (t, img) in enumerate(kept):
+        name = f"frame_{i:05d}.png"
+        _save_png(np.asarray(img.convert("RGB")), out_dir / name)
+        frames.append({"name": name, "time": t})
+    return frames
+
+
+def _copy_frames(paths: list[Path], out_dir: Path, max_frames: int, long_side: Optional[int]) -> list[dict]:
+    """Subsample a frame folder evenly to ``max_frames`` and save resized PNG copies."""
+    if len(paths) > max_frames:
+        idx = np.unique(np.round(np.linspace(0, len(paths) - 1, max_frames)).astype(int))
+        paths = [paths[i] for i in idx]
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = []
+    for p in paths:
+        from PIL import Image
+
+        with Image.open(p) as im:
+            size = target_size(im.width, im.height, long_side)
+        arr = read_image(p, size)
+        name = p.stem + ".png"
+        _save_png((arr * 255 + 0.5).astype(np.uint8), out_dir / name)
+        frames.append({"name": name, "source": p.name})
+    return frames
+
+
+# --------------------------------------------------------------------------- SfM
+def run_sfm(
+    image_dir: Path,
+    out_dir: Path,
+    matcher: str = "sequential",
+    camera_model: str = "SIMPLE_RADIAL",
+    overlap: int = 10,
+    seed: int = 0,
+) -> Path:
+    """COLMAP SfM on ``image_dir``: SIFT, one shared camera, sequential/exhaustive matching,
+    incremental mapping. Writes the largest model to ``out_dir/sparse/0`` atomically
+    (file by file) and returns that folder.
+
+    Raises:
+        DataError: no model could be reconstructed.
+    """
+    import pycolmap
+
+    n_images = len(list_images(image_dir))
+    work = Path(tempfile.mkdtemp(prefix="sfm_", dir=out_dir))
+    try:
+        db = work / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        log.info("SfM: extracting SIFT features from %d frames in %s", n_images, image_dir)
+        pycolmap.extract_features(
+            db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, device=pycolmap.Device.cpu
+        )
+        log.info("SfM: %s matching", matcher)
+        if matcher == "sequential":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = overlap
+            pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+        elif matcher == "exhaustive":
+            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+        else:
+            raise DataError(f"Unknown data.matcher={matcher!r}: use 'sequential' (videos) or 'exhaustive'.")
+        log.info("SfM: incremental mapping")
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.random_seed = seed
+        recs = pycolmap.incremental_mapping(db, image_dir, work / "models", options=opts)
+        if not recs:
+            raise DataError(
+                f"COLMAP could not reconstruct any camera from the {n_images} frames in {image_dir}; {SFM_HINT}."
+            )
+        best = max(recs.values(), key=lambda r: r.num_reg_images())
+        tmp_model = work / "best"
+        tmp_model.mkdir()
+        best.write(str(tmp_model))
+        final = out_dir / "sparse" / "0"
+        for f in sorted(tmp_model.iterdir()):
+            with atomic_path(final / f.name) as tmp:
+                shutil.copyfile(f, tmp)
+        return final
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+# --------------------------------------------------------------------------- loader
+def _undistort(arr: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    import cv2
+
+    if not np.any(dist):
+        return arr
+    return cv2.undistort(arr, K, dist, None, K)
+
+
+def _prepare(
+    root: Path,
+    fps: float,
+    max_frames: int,
+    frame_long_side: Optional[int],
+    matcher: str,
+    camera_model: str,
+    cache_dir: Optional[Any],
+    notes: list[str],
+) -> tuple[Path, Path, list[Path], Optional[Path]]:
+    """Return (image folder, model folder, files defining the scene, mask folder)."""
+    settings = dict(fps=fps, max_frames=max_frames, long=frame_long_side, matcher=matcher, cam=camera_model, v=1)
+    if root.is_file():
+        if root.suffix.lower() not in VIDEO_EXTS:
+            raise DataError(f"{root} is not a video ({'/'.join(VIDEO_EXTS)}) nor a folder of frames: fix data.path.")
+        inputs, mask_dir, frame_paths = [root], None, None
+    else:
+        if (root / "sparse" / "0").is_dir() and (root / "images").is_dir():
+            notes.append(f"using the existing COLMAP model {root / 'sparse' / '0'} as is")
+            model = root / "sparse" / "0"
+            files = [p for p in model.iterdir() if p.is_file()]
+            return root / "images", model, files, find_mask_folder(root)
+        frame_dir = root / "images" if (root / "images").is_dir() else root
+        frame_paths = list_images(frame_dir, notes)
+        inputs, mask_dir = frame_paths, find_mask_folder(root)
+    if not root.is_file() and len(frame_paths) < 3:
+        raise DataError(f"Only {len(frame_paths)} frame(s) in {frame_dir}: SfM needs many overlapping views (>= 20).")
+    key = hash_files(inputs, extra=options_key(**settings))[:16]
+    base = Path(cache_dir) if cache_dir is not None else (root.parent if root.is_file() else root) / "nerfart_cache"
+    cache = base / f"{root.stem}_{key}"
+    image_dir, model_dir, meta_path = cache / "images", cache / "sparse" / "0", cache / "frames.json"
+    if meta_path.is_file() and (model_dir / "images.bin").is_file():
+        notes.append(f"loaded cached frames and SfM from {cache}")
+    else:
+        cache.mkdir(parents=True, exist_ok=True)
+        if root.is_file():
+            frames = extract_frames(root, image_dir, fps, max_frames, frame_long_side)
+            notes.append(f"extracted {len(frames)} frames at <= {fps:g} fps from {root.name}")
+        else:
+            frames = _copy_frames(frame_paths, image_dir, max_frames, frame_long_side)
+        run_sfm(image_dir, cache, matcher=matcher, camera_model=camera_model)
+        atomic_write_json(meta_path, {"source": str(root), "settings": settings, "frames": frames})
+        notes.append(f"ran COLMAP SfM ({matcher} matching, one shared {camera_model} camera); cached in {cache}")
+    files = [meta_path, *[p for p in model_dir.iterdir() if p.is_file()]]
+    return image_dir, model_dir, files, mask_dir
+
+
+def selfie_cache_meta(scene: Scene) -> Optional[dict]:
+    """The cache's ``frames.json`` (frame names and video times) for a selfie scene, if any."""
+    for note in scene.notes:
+        for marker in ("cached in ", "cached frames and SfM from "):
+            if marker in note:
+                p = Path(note.split(marker, 1)[1]) / "frames.json"
+                if p.is_file():
+                    return json.loads(p.read_text())
+    return None
+
+
+@register("data", "selfie")
+def load_selfie(
+    path: Any,
+    resolution: Optional[int] = None,
+    holdout_every: int = 8,
+    use_masks: bool = True,
+    fps: float = 15.0,
+    max_frames: int = 100,
+    frame_long_side: Optional[int] = 480,
+    matcher: str = "sequential",
+    camera_model: str = "SIMPLE_RADIAL",
+    min_registered: float = 0.5,
+    cache_dir: Optional[Any] = None,
+    capture: Optional[str] = None,
+    **unused: Any,
+) -> Scene:
+    """Load a selfie video / frame folder / COLMAP scene folder (see module doc).
+
+    Args:
+        path: video file, folder of frames (``folder/`` or ``folder/images/``), or a
+            folder with ``images/`` and ``sparse/0``.
+        resolution: long side of the returned images (None: the SfM frame size).
+        fps, max_frames, frame_long_side: frame sampling (paper: 15 fps, <= 100, 480).
+        matcher: "sequential" (video order) or "exhaustive".
+        camera_model: COLMAP camera model of the single shared camera; distortion is
+            removed from the returned images (K stays the pinhole part).
+        min_registered: minimal fraction of frames SfM must register.
+        cache_dir: where ``<name>_<hash>/`` caches go (default: ``nerfart_cache/``
+            next to the input).
+        capture: force the capture type instead of detecting it.
+    """
+    if unused:
+        log.debug("selfie loader ignores options %s", sorted(unused))
+    if path is None:
+        raise DataError("No input given for data=selfie: set data.path=/path/to/video.mp4 (or a folder of frames).")
+    root = Path(path).expanduser()
+    if not root.is_file():
+        root = require_dir(root, "selfie folder")
+    notes: list[str] = []
+    image_dir, model_dir, files, mask_dir = _prepare(
+        root, fps, max_frames, frame_long_side, matcher, camera_model, cache_dir, notes
+    )
+    model: ColmapModel = read_colmap_model(model_dir)
+    frames = list_images(image_dir)
+    n_total, n_reg = len(frames), len(model.names)
+    if n_reg < max(3, min_registered * n_total):
+        raise DataError(
+            f"COLMAP registered only {n_reg} of {n_total} frames from {root} (need >= {min_registered:.0%}); "
+            f"{SFM_HINT}. Delete {model_dir.parent.parent} to redo SfM."
+        )
+    if n_reg < n_total:
+        notes.append(f"SfM registered {n_reg} of {n_total} frames; the others are dropped")
+    by_name = {p.name: p for p in frames}
+    missing = [n for n in model.names if n not in by_name]
+    if missing:
+        raise DataError(
+            f"COLMAP model {model_dir} names images missing from {image_dir} ({missing[:3]}); "
+            "the model does not belong to these frames: delete the cache or fix the folder."
+        )
+    paths = [by_name[n] for n in model.names]
+    W0, H0 = int(model.sizes[0][0]), int(model.sizes[0][1])
+    if any(tuple(s) != (W0, H0) for s in model.sizes):
+        raise DataError(f"COLMAP model {model_dir} has cameras of different sizes; use one image size for all frames.")
+    W1, H1 = target_size(W0, H0, resolution)
+    sx, sy = W1 / W0, H1 / H0
+    imgs = []
+    for i, p in enumerate(paths):
+        arr = read_image(p)
+        if arr.shape[:2] != (H0, W0):
+            raise DataError(f"{p} is {arr.shape[1]}x{arr.shape[0]} but its COLMAP camera is {W0}x{H0}: images and model do not match.")
+        arr = _undistort(arr, model.K[i], model.dist[i])
+        imgs.append(arr)
+    if np.any(model.dist):
+        notes.append(f"removed {model.camera_models[0]} lens distortion from the images (pinhole K kept)")
+    images = np.stack(imgs)
+    masks, mask_paths = None, []
+    if use_masks and mask_dir is not None:
+        mask_paths = match_masks(paths, list_images(mask_dir, notes), notes)
+        masks = np.stack([_undistort(read_image(p, (W0, H0), gray=True), model.K[i], model.dist[i])
+                          for i, p in enumerate(mask_paths)])
+    if (W1, H1) != (W0, H0):
+        import torch
+        import torch.nn.functional as F
+
+        images = F.interpolate(torch.from_numpy(images).permute(0, 3, 1, 2), size=(H1, W1), mode="bilinear",
+                               antialias=True).permute(0, 2, 3, 1).clamp(0, 1).numpy()
+        if masks is not None:
+            masks = F.interpolate(torch.from_numpy(masks)[:, None], size=(H1, W1), mode="bilinear",
+                                  antialias=True)[:, 0].clamp(0, 1).numpy()
+    K = model.K.copy()
+    K[:, 0, :] *= sx
+    K[:, 1, :] *= sy
+    if capture is None:
+        capture, reason = detect_capture(model.c2w, masks)
+    else:
+        reason = "set by the capture option"
+    # per-camera depth range of the sparse points each camera observes
+    depths_lo, depths_hi = [], []
+    for i, (_, idx) in enumerate(model.observations):
+        pts = model.points[idx] if len(idx) else model.points
+        w2c = np.linalg.inv(model.c2w[i])
+        z = pts @ w2c[2, :3] + w2c[2, 3]
+        z = z[z > 0]
+        z = z if len(z) else np.array([1.0, 10.0])
+        depths_lo.append(np.percentile(z, 1))
+        depths_hi.append(np.percentile(z, 99))
+    bounds = np.stack([np.array(depths_lo), np.array(depths_hi)], 1)
+    if capture == "forward_facing":
+        T = forward_facing_normalization(model.c2w, bounds)
+    else:
+        T = unit_sphere_from_points(model.points, model.c2w)
+    c2w = apply_similarity(T, model.c2w)
+    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
+    if capture == "object":
+        dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
+        near, far = np.maximum(dist - 1.0, 0.05), dist + 1.0
+    else:
+        near = np.maximum(bounds[:, 0] * s * (1.0 if capture == "forward_facing" else 0.9), 1e-3)
+        far = np.maximum(bounds[:, 1] * s * (1.0 if capture == "forward_facing" else 1.1), near * 1.01)
+    notes.append(f"capture={capture} ({reason})")
+    return make_scene(
+        images=images,
+        masks=masks,
+        c2w=c2w,
+        K=K,
+        near=near,
+        far=far,
+        names=model.names,
+        normalization=T,
+        capture=capture,
+        source=root,
+        notes=notes,
+        hash_paths=[*files, *paths, *mask_paths],
+        opts=dict(kind="selfie", resolution=resolution, use_masks=use_masks, capture=capture),
+        holdout_every=holdout_every,
+    )

@@ -1,0 +1,160 @@
+"""Video and image-grid writers (atomic), and a side-by-side frame helper.
+
+Frames are HxWx3 (or HxW grey, or HxWx4 RGBA -> alpha dropped) numpy arrays,
+uint8 in [0,255] or float in [0,1] (clipped). Videos are H.264 (libx264,
+yuv420p) MP4 through imageio-ffmpeg's bundled ffmpeg; odd sizes are padded to
+even by replicating the last row/column (yuv420p needs even sizes).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from nerfart_plugin.errors import DataError, NerfArtError
+from nerfart_plugin.utils.io import atomic_path
+
+log = logging.getLogger(__name__)
+
+
+def to_uint8(frame: np.ndarray) -> np.ndarray:
+    """HxW, HxWx1, HxWx3 or HxWx4 uint8/float image -> HxWx3 uint8 (floats taken in [0,1])."""
+    a = np.asarray(frame)
+    if hasattr(frame, "detach"):  # torch tensor
+        a = frame.detach().cpu().numpy()
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
+        raise DataError(f"Expected an HxWx3 image, got shape {a.shape}; pass RGB frames (H, W, 3).")
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    a = a[..., :3]
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a)
+    if np.issubdtype(a.dtype, np.floating):
+        a = np.nan_to_num(a.astype(np.float32), nan=0.0)
+        return (np.clip(a, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    return np.clip(a, 0, 255).astype(np.uint8)
+
+
+def pad_to_even(frame: np.ndarray) -> np.ndarray:
+    """Replicate-pad the last row/column so height and width are even."""
+    h, w = frame.shape[:2]
+    return np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+
+
+def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: int = 24, quality: int = 18) -> Path:
+    """Write frames to an H.264 MP4 at ``path`` atomically; returns the path.
+
+    ``quality`` is libx264's CRF (lower = better, 18 ~ visually lossless).
+    All frames must share one size.
+    """
+    import imageio_ffmpeg
+
+    path = Path(path)
+    if len(frames) == 0:
+        raise DataError(f"write_video({path}): no frames given; render at least one frame.")
+    first = pad_to_even(to_uint8(frames[0]))
+    h, w = first.shape[:2]
+    try:
+        with atomic_path(path) as tmp:
+            writer = imageio_ffmpeg.write_frames(
+                str(tmp),
+                (w, h),
+                fps=fps,
+                codec="libx264",
+                pix_fmt_in="rgb24",
+                pix_fmt_out="yuv420p",
+                macro_block_size=1,
+                output_params=["-crf", str(int(quality)), "-f", "mp4", "-movflags", "+faststart"],
+                ffmpeg_log_level="error",
+            )
+            writer.send(None)
+            try:
+                for i, f in enumerate(frames):
+                    f = pad_to_even(to_uint8(f))
+                    if f.shape[:2] != (h, w):
+                        raise DataError(
+                            f"write_video({path}): frame {i} is {f.shape[1]}x{f.shape[0]} but frame 0 is "
+                            f"{w}x{h}; resize frames to one size first."
+                        )
+                    writer.send(np.ascontiguousarray(f))
+            finally:
+                writer.close()
+    except OSError as exc:
+        raise NerfArtError(f"Could not write video {path}: {exc}. Check the folder is writable.") from exc
+    log.info("Wrote %s (%d frames, %dx%d, %d fps)", path, len(frames), w, h, fps)
+    return path
+
+
+def _label(img: np.ndarray, text: str) -> np.ndarray:
+    """Draw ``text`` in the top-left corner of an HxWx3 uint8 image (PIL default font)."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    im = Image.fromarray(img)
+    draw = ImageDraw.Draw(im)
+    size = max(10, img.shape[0] // 20)
+    try:
+        font = ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1
+        font = ImageFont.load_default()
+    x0, y0, x1, y1 = draw.textbbox((4, 4), text, font=font)
+    draw.rectangle((x0 - 2, y0 - 2, x1 + 2, y1 + 2), fill=(0, 0, 0))
+    draw.text((4, 4), text, fill=(255, 255, 255), font=font)
+    return np.asarray(im)
+
+
+def side_by_side(
+    a: np.ndarray, b: np.ndarray, labels: tuple[str, str] | None = ("source", "stylized"), gap: int = 4
+) -> np.ndarray:
+    """[H, Wa+gap+Wb, 3] uint8: ``a`` left of ``b`` (white gap), optional text labels.
+
+    Images of different heights are bottom-padded with white to the taller one.
+    """
+    a, b = to_uint8(a), to_uint8(b)
+    if labels is not None:
+        a, b = _label(a, labels[0]), _label(b, labels[1])
+    h = max(a.shape[0], b.shape[0])
+    pad = lambda x: np.pad(x, ((0, h - x.shape[0]), (0, 0), (0, 0)), constant_values=255)
+    spacer = np.full((h, gap, 3), 255, np.uint8)
+    return np.concatenate([pad(a), spacer, pad(b)], axis=1)
+
+
+def image_grid(images: Sequence[np.ndarray], ncols: int | None = None, gap: int = 2) -> np.ndarray:
+    """Tile images (any sizes; cells sized to the largest) into one uint8 HxWx3 grid."""
+    if len(images) == 0:
+        raise DataError("image_grid: no images given.")
+    imgs = [to_uint8(i) for i in images]
+    ncols = ncols or int(np.ceil(np.sqrt(len(imgs))))
+    nrows = int(np.ceil(len(imgs) / ncols))
+    ch, cw = max(i.shape[0] for i in imgs), max(i.shape[1] for i in imgs)
+    grid = np.full((nrows * ch + (nrows - 1) * gap, ncols * cw + (ncols - 1) * gap, 3), 255, np.uint8)
+    for n, im in enumerate(imgs):
+        r, c = divmod(n, ncols)
+        y, x = r * (ch + gap), c * (cw + gap)
+        grid[y : y + im.shape[0], x : x + im.shape[1]] = im
+    return grid
+
+
+def save_image(image: np.ndarray, path: str | os.PathLike) -> Path:
+    """Save one image (PNG/JPEG by suffix) atomically."""
+    from PIL import Image
+
+    path = Path(path)
+    fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(path.suffix.lower())
+    if fmt is None:
+        raise DataError(f"Cannot save image {path}: use a .png or .jpg suffix.")
+    with atomic_path(path) as tmp:
+        Image.fromarray(to_uint8(image)).save(tmp, format=fmt)
+    return path
+
+
+def save_image_grid(
+    images: Sequence[np.ndarray], path: str | os.PathLike, ncols: int | None = None, gap: int = 2
+) -> Path:
+    """Tile ``images`` with :func:`image_grid` and save to ``path`` atomically."""
+    return save_image(image_grid(images, ncols=ncols, gap=gap), path)

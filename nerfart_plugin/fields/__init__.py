@@ -1,0 +1,41 @@
+"""Fields: encodings, backbones (nerf | volsdf | neus), background model, occupancy grid.
+
+Importing this package registers the ``encoding`` and ``backbone`` components.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.fields import encodings, nerf, neus, volsdf  # noqa: F401  (registration)
+from nerfart_plugin.fields.background import EnvironmentMap, build_background
+from nerfart_plugin.fields.base import Field, SDFField
+from nerfart_plugin.fields.encodings import build_encoding
+from nerfart_plugin.fields.nerf import NeRFField
+from nerfart_plugin.fields.neus import NeuSField
+from nerfart_plugin.fields.occupancy import OccupancyGrid
+from nerfart_plugin.fields.volsdf import VolSDFField
+
+__all__ = [
+    "Field", "SDFField", "NeRFField", "VolSDFField", "NeuSField", "EnvironmentMap", "OccupancyGrid",
+    "build_field", "build_encoding", "build_background",
+]
+
+
+def build_field(backbone_cfg: dict[str, Any], encoding_cfg: Optional[dict[str, Any]] = None, bound: float = 1.0) -> Field:
+    """Build a backbone (``backbone_cfg["name"]`` in nerf|volsdf|neus, other keys are its config)
+    on an encoding (``encoding_cfg["name"]`` in frequency|grid, other keys its config)."""
+    from nerfart_plugin import registry
+
+    cfg = dict(backbone_cfg or {})
+    name = cfg.pop("name", None) or cfg.pop("type", None)
+    if name is None:
+        raise ConfigError("backbone config has no 'name'; set backbone.name to one of: " + ", ".join(registry.names("backbone")))
+    cls = registry.get("backbone", str(name))
+    try:
+        return cls(encoding_cfg=dict(encoding_cfg) if encoding_cfg else None, bound=bound, **cfg)
+    except TypeError as exc:
+        raise ConfigError(
+            f"backbone {name!r}: bad config keys {sorted(cfg)} ({exc}); see {cls.__module__}.{cls.__name__} docstring."
+        ) from exc

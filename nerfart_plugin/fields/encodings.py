@@ -1,0 +1,194 @@
+"""Input encodings (registry kind ``encoding``): ``frequency``, ``grid``, ``sh``.
+
+Position encodings take points x [N,3] in world units inside [-bound, bound]^3
+(points outside are clamped to the box) and return features [N, n_output_dims].
+``sh`` encodes unit view directions d [N,3].
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from torch import Tensor
+
+from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.registry import register
+
+__all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "build_encoding"]
+
+
+class Encoding(nn.Module):
+    """Base class: ``forward(x [N,in_dim]) -> [N, n_output_dims]``."""
+
+    n_input_dims: int = 3
+    n_output_dims: int
+
+    def regularizers(self) -> dict[str, Tensor]:
+        """Optional parameter regularizers (e.g. grid total variation)."""
+        return {}
+
+
+@register("encoding", "frequency")
+class FrequencyEncoding(Encoding):
+    """NeRF positional encoding ``[x, sin(2^k x), cos(2^k x)]_{k<n_freqs}`` on ``x / bound``.
+
+    Config: ``n_freqs`` (int, default 10; 4 is typical for directions),
+    ``include_input`` (bool, default True). Output dims ``3*(include_input + 2*n_freqs)``.
+    """
+
+    def __init__(self, bound: float = 1.0, n_freqs: int = 10, include_input: bool = True, in_dim: int = 3) -> None:
+        super().__init__()
+        if n_freqs < 0:
+            raise ConfigError(f"encoding.n_freqs must be >= 0, got {n_freqs}; set encoding.n_freqs to e.g. 6 or 10.")
+        self.bound = float(bound)
+        self.n_input_dims = in_dim
+        self.n_freqs = int(n_freqs)
+        self.include_input = bool(include_input)
+        self.register_buffer("freqs", 2.0 ** torch.arange(self.n_freqs, dtype=torch.float32), persistent=False)
+        self.n_output_dims = in_dim * (int(self.include_input) + 2 * self.n_freqs)
+
+    def forward(self, x: Tensor) -> Tensor:
+        x = x / self.bound
+        feats = [x] if self.include_input else []
+        if self.n_freqs:
+            xb = (x[..., None, :] * self.freqs[:, None].to(x.dtype)).flatten(-2)  # [N, F*3]
+            feats += [torch.sin(xb), torch.cos(xb)]
+        return torch.cat(feats, dim=-1)
+
+
+@register("encoding", "grid")
+class TensorVMGridEncoding(Encoding):
+    """TensoRF vector-matrix (VM) decomposed feature grid, pure PyTorch (``F.grid_sample``).
+
+    Per resolution level and per component c: three planes ``P_xy, P_xz, P_yz``
+    [res,res] and three lines ``L_z, L_y, L_x`` [res]; the feature of x is
+    ``[P_xy(x,y) L_z(z), P_xz(x,z) L_y(y), P_yz(y,z) L_x(x)]`` (3*n_components
+    values per level, bilinear/linear interpolation, aligned corners), all
+    levels concatenated, then optionally projected by a bias-free linear basis
+    (TensoRF's "basis matrix") to ``out_features``.
+
+    Config: ``resolution`` (int or list of ints for multi-resolution, default
+    128), ``n_components`` (int, default 16), ``out_features`` (int or None =
+    no projection, default 32), ``init_std`` (default 0.1; planes/lines are
+    N(0, init_std) so products start small but non-zero), ``tv_weight``
+    (default 0.0: total-variation regularizer returned by ``regularizers()``).
+    """
+
+    def __init__(
+        self,
+        bound: float = 1.0,
+        resolution: int | Sequence[int] = 128,
+        n_components: int = 16,
+        out_features: int | None = 32,
+        init_std: float = 0.1,
+        tv_weight: float = 0.0,
+    ) -> None:
+        super().__init__()
+        res_list = [int(resolution)] if isinstance(resolution, (int, float)) else [int(r) for r in resolution]
+        if not res_list or min(res_list) < 2 or n_components < 1:
+            raise ConfigError(
+                f"encoding grid: resolution={resolution!r}, n_components={n_components} invalid; "
+                "use resolution >= 2 (int or list) and n_components >= 1."
+            )
+        self.bound = float(bound)
+        self.resolutions = res_list
+        self.n_components = int(n_components)
+        self.tv_weight = float(tv_weight)
+        C = self.n_components
+        self.planes = nn.ParameterList([nn.Parameter(init_std * torch.randn(3, C, r, r)) for r in res_list])
+        self.lines = nn.ParameterList([nn.Parameter(init_std * torch.randn(3, C, r, 1)) for r in res_list])
+        raw = 3 * C * len(res_list)
+        self.basis = nn.Linear(raw, out_features, bias=False) if out_features else None
+        self.n_output_dims = int(out_features) if out_features else raw
+
+    # plane axes (x,y), (x,z), (y,z); the matching line is the remaining axis z, y, x.
+    _PLANE_AXES = ((0, 1), (0, 2), (1, 2))
+    _LINE_AXES = (2, 1, 0)
+
+    def forward(self, x: Tensor) -> Tensor:
+        N = x.shape[0]
+        xn = (x / self.bound).clamp(-1.0, 1.0)
+        dtype = self.planes[0].dtype
+        xn = xn.to(dtype)
+        # grid_sample coords: last dim (u,v) = (W index, H index).
+        plane_coords = torch.stack([xn[:, list(ax)] for ax in self._PLANE_AXES], 0)  # [3,N,2]
+        line_c = torch.stack([xn[:, a] for a in self._LINE_AXES], 0)  # [3,N]
+        line_coords = torch.stack([torch.zeros_like(line_c), line_c], -1)  # [3,N,2]: W=1 col, H=coord
+        feats = []
+        for planes, lines in zip(self.planes, self.lines):
+            p = F.grid_sample(planes.to(dtype), plane_coords[:, :, None, :], mode="bilinear", align_corners=True)
+            l = F.grid_sample(lines.to(dtype), line_coords[:, :, None, :], mode="bilinear", align_corners=True)
+            f = (p * l)[..., 0]  # [3,C,N]
+            feats.append(f.permute(2, 0, 1).reshape(N, -1))
+        out = torch.cat(feats, -1) if len(feats) > 1 else feats[0]
+        return self.basis(out) if self.basis is not None else out
+
+    def regularizers(self) -> dict[str, Tensor]:
+        if self.tv_weight <= 0:
+            return {}
+        tv = sum(
+            (p[..., 1:, :] - p[..., :-1, :]).pow(2).mean() + (p[..., :, 1:] - p[..., :, :-1]).pow(2).mean()
+            for p in self.planes
+        )
+        return {"grid_tv": self.tv_weight * tv}
+
+
+@register("encoding", "sh")
+class SHEncoding(Encoding):
+    """Real spherical harmonics of unit directions, ``degree`` bands (1..4 -> 1,4,9,16 dims).
+
+    Same convention/constants as tiny-cuda-nn's ``SphericalHarmonics`` (degree 4 = 16 coefficients).
+    Config: ``degree`` (default 4).
+    """
+
+    def __init__(self, bound: float = 1.0, degree: int = 4) -> None:
+        super().__init__()
+        if not 1 <= degree <= 4:
+            raise ConfigError(f"sh encoding degree must be in 1..4, got {degree}; set dir_encoding.degree=4.")
+        self.degree = int(degree)
+        self.n_output_dims = self.degree**2
+
+    def forward(self, d: Tensor) -> Tensor:
+        x, y, z = d.unbind(-1)
+        out = [torch.full_like(x, 0.28209479177387814)]
+        if self.degree > 1:
+            out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+        if self.degree > 2:
+            xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+            out += [
+                1.0925484305920792 * xy,
+                -1.0925484305920792 * yz,
+                0.94617469575755997 * zz - 0.31539156525251999,
+                -1.0925484305920792 * xz,
+                0.54627421529603959 * (xx - yy),
+            ]
+        if self.degree > 3:
+            out += [
+                0.59004358992664352 * y * (-3.0 * xx + yy),
+                2.8906114426405538 * xy * z,
+                0.45704579946446572 * y * (1.0 - 5.0 * zz),
+                0.3731763325901154 * z * (5.0 * zz - 3.0),
+                0.45704579946446572 * x * (1.0 - 5.0 * zz),
+                1.4453057213202769 * z * (xx - yy),
+                0.59004358992664352 * x * (-xx + 3.0 * yy),
+            ]
+        return torch.stack(out, -1)
+
+
+def build_encoding(cfg: dict | None, bound: float = 1.0) -> Encoding:
+    """Build an encoding from ``{"name": <registered name>, **kwargs}`` (also accepts ``type``/``otype`` as the key)."""
+    from nerfart_plugin import registry
+
+    cfg = dict(cfg or {"name": "frequency"})
+    name = cfg.pop("name", None) or cfg.pop("type", None) or cfg.pop("otype", None)
+    if name is None:
+        raise ConfigError("encoding config has no 'name'; set encoding.name to one of: " + ", ".join(registry.names("encoding")))
+    cls = registry.get("encoding", str(name))
+    try:
+        return cls(bound=bound, **cfg)
+    except TypeError as exc:
+        raise ConfigError(f"encoding {name!r}: bad config keys {sorted(cfg)} ({exc}); see {cls.__module__}.{cls.__name__} docstring.") from exc

@@ -1,0 +1,49 @@
+"""NeuS backbone (``backbone: neus``): SDF with logistic-CDF unbiased opacity (Wang et al. 2021)."""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+import torch
+import torch.nn as nn
+from torch import Tensor
+
+from nerfart_plugin.fields.base import SDFField
+from nerfart_plugin.registry import register
+from nerfart_plugin.rendering.volume import neus_alpha
+
+__all__ = ["NeuSField"]
+
+
+@register("backbone", "neus")
+class NeuSField(SDFField):
+    """SDF field rendered with ``neus_alpha``.
+
+    Config (besides the common ``Field`` keys and ``radius``): ``init_variance``
+    (default 0.3; ``inv_s = exp(10 * variance)`` starts at ~20), ``inv_s_max``
+    (default 1e5, clamp of inv_s), ``anneal_steps`` (default 0 = no cos
+    annealing; otherwise the cos-anneal ratio goes linearly 0 -> 1 over the
+    first ``anneal_steps`` steps, driven by ``update_step``).
+    """
+
+    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0, init_variance: float = 0.3,
+                 inv_s_max: float = 1e5, anneal_steps: int = 0, **kw: Any) -> None:
+        super().__init__(encoding_cfg, bound, **kw)
+        self.variance = nn.Parameter(torch.tensor(float(init_variance)))
+        self.inv_s_max = float(inv_s_max)
+        self.anneal_steps = int(anneal_steps)
+        self.cos_anneal_ratio = 1.0 if self.anneal_steps <= 0 else 0.0
+
+    @property
+    def inv_s(self) -> Tensor:
+        """Logistic sharpness ``exp(10 variance)`` clamped to [1, inv_s_max]."""
+        return torch.exp(self.variance * 10.0).clamp(1.0, self.inv_s_max)
+
+    def update_step(self, global_step: int, total_steps: int) -> None:
+        self.cos_anneal_ratio = 1.0 if self.anneal_steps <= 0 else min(1.0, global_step / self.anneal_steps)
+
+    def alpha(self, out: dict[str, Tensor], deltas: Tensor, dirs: Tensor) -> Tensor:
+        """NeuS section opacity [R,K] from sdf, ``dot(dir, grad sdf)`` and deltas."""
+        grad = out["gradient"].reshape(*deltas.shape, 3)
+        cos = (dirs.float() * grad.float()).sum(-1)
+        return neus_alpha(out["sdf"].reshape(deltas.shape), cos, deltas, self.inv_s, self.cos_anneal_ratio)

@@ -1,0 +1,324 @@
+"""CLIP guidance via open_clip (paper: ViT-B/32, OpenAI weights).
+
+Weights resolution is offline-first (see :mod:`nerfart_plugin.guidance.weights`):
+
+1. ``pretrained`` is a file path -> load it (error if it does not exist).
+2. ``pretrained`` is an open_clip tag (e.g. "openai") -> look for the file in
+   the Hugging Face hub cache (``cache_dir`` or ``$HF_HUB_CACHE``, via
+   ``huggingface_hub.try_to_load_from_cache``) and in open_clip's URL cache
+   (``cache_dir`` or ``~/.cache/clip``). Found -> load that file.
+3. Not found -> download through open_clip only if downloads are allowed and
+   the host answers a 2 s TCP connect; otherwise raise WeightsMissingError
+   (before any training starts) naming model + tag, the places searched and
+   how to supply the file.
+4. ``pretrained=None`` -> random weights, only with ``allow_random_weights=True``
+   (also the fallback for 3. when ``allow_random_weights=True``); logs a loud
+   warning and sets ``is_real=False``.
+
+Preprocessing is differentiable (kornia): the whole image is resized to the
+model's input size ("squash": every pixel receives gradient; CLIP's own
+shortest-side-resize + centre-crop would leave the borders of portrait /
+landscape renders unsupervised) with antialiasing, then normalized with the
+model's mean/std. ``resize_mode="shortest"`` reproduces CLIP's crop.
+
+Prompts longer than the 77-token context are truncated by open_clip's
+tokenizer (the end-of-text token is kept); we log a warning naming the prompt.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import kornia
+import torch
+from torch import Tensor
+
+from nerfart_plugin.errors import ConfigError, WeightsMissingError
+from nerfart_plugin.guidance import weights as wts
+from nerfart_plugin.guidance.base import Guidance
+from nerfart_plugin.registry import register
+
+log = logging.getLogger(__name__)
+
+#: Tiny architecture (overrides for open_clip's model config) for tests with
+#: random weights: 32 px input, 1-layer 64-wide towers, D=32. ~3 M params.
+TINY_TEST_OVERRIDES: dict[str, Any] = {
+    "embed_dim": 32,
+    "vision_cfg": {"image_size": 32, "layers": 1, "width": 64, "patch_size": 16, "head_width": 32},
+    "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 1},
+}
+
+_HF_WEIGHT_FILES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
+
+
+def _hf_cache_dir(cache_dir: str | None) -> str:
+    if cache_dir:
+        return str(Path(cache_dir).expanduser())
+    from huggingface_hub import constants
+
+    return str(constants.HF_HUB_CACHE)
+
+
+def _url_cache_dir(cache_dir: str | None) -> str:
+    return str(Path(cache_dir).expanduser()) if cache_dir else os.path.expanduser("~/.cache/clip")
+
+
+def _find_cached(tag_cfg: dict, cache_dir: str | None) -> tuple[str | None, list[str]]:
+    """Look for a tag's checkpoint in local caches. Returns (file or None, places searched)."""
+    searched: list[str] = []
+    hf = tag_cfg.get("hf_hub", "")
+    if hf:
+        from huggingface_hub import try_to_load_from_cache
+
+        # open_clip convention: "org/repo/filename" or "org/repo/" (default file names)
+        repo_id, filename = os.path.split(hf)
+        candidates = [filename] if filename else list(_HF_WEIGHT_FILES)
+        if filename.endswith((".bin", ".pth")):
+            candidates.insert(0, filename[:-4] + ".safetensors")
+        hub_dir = _hf_cache_dir(cache_dir)
+        for fn in candidates:
+            searched.append(f"{hub_dir} (HF repo {repo_id}, file {fn})")
+            try:
+                hit = try_to_load_from_cache(repo_id=repo_id, filename=fn, cache_dir=hub_dir)
+            except Exception as exc:  # malformed cache etc.
+                log.debug("try_to_load_from_cache(%s, %s) failed: %s", repo_id, fn, exc)
+                hit = None
+            if isinstance(hit, str) and os.path.isfile(hit):
+                return hit, searched
+    url = tag_cfg.get("url", "")
+    if url:
+        target = os.path.join(_url_cache_dir(cache_dir), os.path.basename(url))
+        searched.append(target)
+        if os.path.isfile(target):
+            return target, searched
+    return None, searched
+
+
+def _missing_message(model: str, tag: str, searched: list[str], cache_dir: str | None, hint: str) -> str:
+    where = "\n  - ".join(searched) if searched else "(no local cache location known for this tag)"
+    cache_arg = f", cache_dir={cache_dir!r}" if cache_dir else ""
+    return (
+        f"CLIP weights not found: model {model!r} with pretrained={tag!r}.\n"
+        f"Looked for them in:\n  - {where}\n"
+        f"{hint}\n"
+        "How to supply them:\n"
+        f"  (a) on a machine with internet run\n"
+        f"      python -c \"import open_clip; open_clip.create_model_and_transforms('{model}', "
+        f"pretrained='{tag}'{cache_arg})\"\n"
+        f"      and copy the resulting cache folder ({_hf_cache_dir(cache_dir)}) to the same place here "
+        "(or point guidance.clip.cache_dir / HF_HUB_CACHE at it);\n"
+        "  (b) or pass a local checkpoint file: guidance.clip.pretrained=/path/to/file.pt "
+        "(e.g. the OpenAI ViT-B-32.pt or an open_clip .bin/.safetensors);\n"
+        "  (c) tests only: guidance.allow_random_weights=true (random weights, results are meaningless)."
+    )
+
+
+def _is_torchscript_archive(path: str) -> bool:
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as zf:
+            return any(n.endswith("constants.pkl") for n in zf.namelist())
+    except (zipfile.BadZipFile, OSError):
+        return False
+
+
+@register("guidance", "clip")
+class CLIPGuidance(Guidance):
+    """Frozen open_clip model as :class:`Guidance`.
+
+    Args:
+        model: open_clip architecture name (``open_clip.list_models()``), paper: "ViT-B-32".
+        pretrained: open_clip tag (paper: "openai"), a local checkpoint path, or
+            None for random weights (needs ``allow_random_weights``).
+        cache_dir: weights cache folder (default: HF hub cache / ~/.cache/clip).
+        allow_random_weights: permit random weights (pretrained=None, or as a
+            fallback when the weights are missing). Loud warning, ``is_real=False``.
+        allow_download: permit network downloads (None -> env NERFART_ALLOW_DOWNLOAD).
+        quick_gelu: activation override; None = the tag's setting (OpenAI weights
+            need QuickGELU), for local files True iff the file is an OpenAI
+            TorchScript archive or its name contains "openai".
+        resize_mode: "squash" (default, whole image resized to the input size)
+            or "shortest" (CLIP's shortest-side resize + centre crop).
+        model_overrides: extra keyword overrides of the open_clip model config
+            (e.g. :data:`TINY_TEST_OVERRIDES`).
+        device: where to put the model (default CPU; ``.to()`` works as usual).
+    """
+
+    name = "clip"
+
+    def __init__(
+        self,
+        model: str = "ViT-B-32",
+        pretrained: str | None = "openai",
+        cache_dir: str | None = None,
+        allow_random_weights: bool = False,
+        allow_download: bool | None = None,
+        quick_gelu: bool | None = None,
+        resize_mode: str = "squash",
+        model_overrides: dict[str, Any] | None = None,
+        device: str | torch.device | None = None,
+    ) -> None:
+        super().__init__()
+        import open_clip
+
+        if model not in open_clip.list_models():
+            raise ConfigError(
+                f"guidance.clip.model={model!r} is not an open_clip model; "
+                f"choose one of open_clip.list_models(), e.g. 'ViT-B-32' (paper)."
+            )
+        if resize_mode not in ("squash", "shortest"):
+            raise ConfigError(f"guidance.clip.resize_mode={resize_mode!r}; use 'squash' or 'shortest'")
+        if isinstance(pretrained, str) and pretrained.strip().lower() in ("", "none", "null", "random"):
+            pretrained = None
+        self.model_name = model
+        self.pretrained = pretrained
+        self.resize_mode = resize_mode
+        overrides = dict(model_overrides or {})
+
+        checkpoint, tag_cfg = self._resolve(model, pretrained, cache_dir, allow_random_weights, allow_download)
+        if quick_gelu is None:
+            if tag_cfg:
+                quick_gelu = bool(tag_cfg.get("quick_gelu", False))
+            elif checkpoint:
+                quick_gelu = "openai" in os.path.basename(checkpoint).lower() or _is_torchscript_archive(checkpoint)
+            else:
+                quick_gelu = False
+        try:
+            net = open_clip.create_model(
+                model,
+                pretrained=checkpoint,
+                force_quick_gelu=bool(quick_gelu),
+                cache_dir=cache_dir,
+                **overrides,
+            )
+        except (RuntimeError, OSError, KeyError, ValueError) as exc:
+            if checkpoint is None:
+                raise ConfigError(
+                    f"Could not build open_clip model {model!r} with guidance.clip.model_overrides={overrides}: {exc}"
+                ) from exc
+            raise WeightsMissingError(
+                f"CLIP checkpoint {checkpoint} could not be loaded into model {model!r} ({exc}). "
+                "Check that guidance.clip.model matches the checkpoint's architecture, or re-download it "
+                f"(python -c \"import open_clip; open_clip.create_model_and_transforms('{model}', "
+                f"pretrained='{pretrained}')\")."
+            ) from exc
+        self.is_real = checkpoint is not None
+        if not self.is_real:
+            log.warning(
+                "!!! CLIP guidance %r uses RANDOM weights (allow_random_weights=True): stylization results "
+                "are meaningless; use only for tests. !!!",
+                model,
+            )
+        net.eval()
+        for p in net.parameters():
+            p.requires_grad_(False)
+        self.net = net
+        size = net.visual.image_size
+        self.image_size: tuple[int, int] = (size, size) if isinstance(size, int) else tuple(size)  # type: ignore[assignment]
+        self.input_size = int(self.image_size[0])
+        mean = (tag_cfg or {}).get("mean") or getattr(net.visual, "image_mean", None) or open_clip.OPENAI_DATASET_MEAN
+        std = (tag_cfg or {}).get("std") or getattr(net.visual, "image_std", None) or open_clip.OPENAI_DATASET_STD
+        self.normalize = kornia.enhance.Normalize(torch.tensor(mean), torch.tensor(std))
+        self.tokenizer = open_clip.get_tokenizer(model)
+        self.context_length = int(getattr(self.tokenizer, "context_length", 77) or 77)
+        with torch.no_grad():
+            self.embed_dim = int(net.encode_text(self.tokenizer(["a"])).shape[-1])
+        if device is not None:
+            self.to(device)
+
+    # -------------------------------------------------------------------------------
+    @staticmethod
+    def _resolve(
+        model: str,
+        pretrained: str | None,
+        cache_dir: str | None,
+        allow_random: bool,
+        allow_download: bool | None,
+    ) -> tuple[str | None, dict | None]:
+        """Local checkpoint file (or None for random weights) and the tag's pretrained cfg."""
+        import open_clip
+
+        if pretrained is None:
+            if not allow_random:
+                raise ConfigError(
+                    f"guidance.clip.pretrained is empty for model {model!r}: set it to a tag such as 'openai' "
+                    "or a checkpoint path; random weights need guidance.allow_random_weights=true (tests only)."
+                )
+            return None, None
+        tag_cfg = open_clip.get_pretrained_cfg(model, pretrained) or None
+        if not tag_cfg:
+            path = os.path.expanduser(pretrained)
+            if os.path.isfile(path):
+                return path, None
+            if wts.looks_like_path(pretrained):
+                msg = (
+                    f"CLIP checkpoint file not found: guidance.clip.pretrained={pretrained!r} (model {model!r}); "
+                    f"looked at {os.path.abspath(path)}. Fix the path, or use a tag such as 'openai' "
+                    f"(tags for {model}: {open_clip.list_pretrained_tags_by_model(model)})."
+                )
+            else:
+                raise ConfigError(
+                    f"guidance.clip.pretrained={pretrained!r} is neither a known open_clip tag for {model!r} "
+                    f"({open_clip.list_pretrained_tags_by_model(model)}) nor an existing file."
+                )
+            if allow_random:
+                log.warning("%s Falling back to random weights (allow_random_weights=True).", msg)
+                return None, None
+            raise WeightsMissingError(msg)
+
+        found, searched = _find_cached(tag_cfg, cache_dir)
+        if found:
+            log.info("CLIP %s/%s: using cached weights %s", model, pretrained, found)
+            return found, tag_cfg
+        host = "huggingface.co" if tag_cfg.get("hf_hub") else (tag_cfg.get("url") or "huggingface.co")
+        if wts.downloads_allowed(allow_download) and wts.host_reachable(host):
+            log.info("CLIP %s/%s not cached; downloading via open_clip", model, pretrained)
+            try:
+                from open_clip.pretrained import download_pretrained
+
+                path = download_pretrained(tag_cfg, cache_dir=cache_dir)
+                if path and os.path.isfile(path):
+                    return path, tag_cfg
+            except Exception as exc:  # network errors of many kinds
+                log.warning("Download of CLIP %s/%s failed: %s", model, pretrained, exc)
+        msg = _missing_message(model, pretrained, searched, cache_dir, wts.download_hint(allow_download, host))
+        if allow_random:
+            log.warning("%s\nFalling back to random weights (allow_random_weights=True).", msg)
+            return None, None
+        raise WeightsMissingError(msg)
+
+    # -------------------------------------------------------------------------------
+    def preprocess(self, img: Tensor) -> Tensor:
+        """[B,3,H,W] in [0,1] -> [B,3,S,S] normalized model input (differentiable)."""
+        img = img.float()
+        if self.resize_mode == "shortest":
+            img = kornia.geometry.transform.resize(img, self.input_size, side="short", antialias=True)
+            img = kornia.geometry.transform.center_crop(img, self.image_size)
+        elif tuple(img.shape[-2:]) != self.image_size:
+            img = kornia.geometry.transform.resize(img, self.image_size, interpolation="bilinear", antialias=True)
+        return self.normalize(img)
+
+    def _encode_image(self, img: Tensor) -> Tensor:
+        return self.net.encode_image(self.preprocess(img))
+
+    def _encode_texts(self, texts: list[str]) -> Tensor:
+        encode = getattr(self.tokenizer, "encode", None)
+        if callable(encode):
+            for t in texts:
+                try:
+                    n = len(encode(t)) + 2  # + start/end tokens
+                except Exception:  # tokenizers without a plain encode()
+                    break
+                if n > self.context_length:
+                    log.warning(
+                        "Prompt has %d tokens > CLIP context %d; truncated (end-of-text kept): %r",
+                        n,
+                        self.context_length,
+                        t,
+                    )
+        tokens = self.tokenizer(texts).to(self.device)
+        return self.net.encode_text(tokens).float()

@@ -1,0 +1,409 @@
+"""Run the stages a config asks for: reconstruct -> stylize -> export.
+
+Folders (under ``output_root``, default ``outputs/``):
+
+* ``reconstructions/<data>-<backbone>-<encoding>-<key>/``: keyed by a hash of the
+  scene's content hash and every setting that changes the reconstruction, so a
+  later stylization of the same data + backbone + settings reuses it and any
+  change recomputes it. Holds ``last.ckpt`` (resume point), ``final.ckpt``
+  (complete), ``metrics.json``, ``val/`` images, ``mesh/``.
+* ``stylizations/<prompt>-<backbone>-<key>/``: keyed by the reconstruction key
+  plus the prompt, guidance, experiment and stylization settings. Holds
+  ``last.ckpt``, ``final.ckpt``, ``renders/``, ``video*.mp4``, ``metrics.json``, ``mesh/``.
+
+Re-running the same command resumes from ``last.ckpt`` (``resume=true``); a
+finished run is not recomputed or overwritten. ``resume=false`` moves an
+unfinished folder aside (kept, renamed ``*.abandoned-<time>``) and starts over.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import re
+import shutil
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import lightning as L
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from nerfart_plugin import registry
+from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.utils.device import pick_device
+from nerfart_plugin.utils.io import atomic_path, atomic_write_json, atomic_write_text
+
+log = logging.getLogger("nerfart_plugin")
+
+STAGES = ("reconstruct", "stylize", "all", "export")
+_OOM_HINT = ("out of memory. Lower one of: render.chunk (rays per no-grad chunk), stylize.patch_size (rays per "
+             "patch re-rendered with grad), stylize.resolution, reconstruct.batch_rays, render.num_samples, "
+             "export.chunk.")
+
+
+def config_hash(obj: Any, n: int = 12) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:n]
+
+
+def slug(text: str, n: int = 40) -> str:
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")[:n] or "prompt"
+
+
+def _container(cfg: DictConfig | dict) -> dict:
+    return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
+
+
+def validate_config(c: dict) -> None:
+    """Cheap checks before anything is loaded: stage, component names, prompt."""
+    if c.get("stage") not in STAGES:
+        raise ConfigError(f"stage={c.get('stage')!r} is not valid; use one of {', '.join(STAGES)}.")
+    registry.get("backbone", c["backbone"]["name"])
+    registry.get("encoding", c["encoding"]["name"])
+    registry.get("data", c["data"]["kind"])
+    if c["stage"] in ("stylize", "all"):
+        registry.get("guidance", c["guidance"]["name"])
+        from nerfart_plugin.guidance import validate_prompt
+
+        if c.get("prompt") is None:
+            raise ConfigError("stage=%s needs a style prompt: add +prompt=\"Vincent van Gogh\" (or stage=reconstruct)."
+                              % c["stage"])
+        validate_prompt(c["prompt"])
+
+
+def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: list, precision: str,
+             log_every: int, **kw: Any) -> L.Trainer:
+    from lightning.pytorch.callbacks import TQDMProgressBar
+    from lightning.pytorch.loggers import CSVLogger
+
+    accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
+    devices = [device.index] if device.type == "cuda" and device.index is not None else 1
+    return L.Trainer(
+        max_steps=max_steps, accelerator=accelerator, devices=devices, precision=precision,
+        logger=CSVLogger(str(run_dir), name="logs"), callbacks=[*callbacks, TQDMProgressBar(refresh_rate=10)],
+        enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
+        log_every_n_steps=log_every, default_root_dir=str(run_dir), **kw,
+    )
+
+
+def _prepare_dir(run_dir: Path, resume: bool) -> None:
+    if run_dir.exists() and not resume and not (run_dir / "final.ckpt").exists():
+        aside = run_dir.with_name(f"{run_dir.name}.abandoned-{time.strftime('%Y%m%d-%H%M%S')}")
+        shutil.move(str(run_dir), str(aside))
+        log.info("resume=false: moved the unfinished run to %s and starting over", aside)
+    run_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _renderer_state(ckpt_path: Path) -> dict[str, torch.Tensor]:
+    try:
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        state = ckpt["state_dict"]
+    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint gets the same clear error
+        raise NerfArtError(f"Cannot read checkpoint {ckpt_path}: {exc}. Delete it to recompute, or pass "
+                           "source_checkpoint= pointing to a final.ckpt of a reconstruction.") from exc
+    return {k[len("renderer."):]: v for k, v in state.items() if k.startswith("renderer.")}
+
+
+class Pipeline:
+    """One configured job: loads the scene once and runs the requested stages."""
+
+    def __init__(self, cfg: DictConfig | dict) -> None:
+        self.c = _container(cfg)
+        validate_config(self.c)
+        self.device = pick_device(self.c.get("device", "auto"))
+        self.root = Path(self.c.get("output_root", "outputs"))
+        self.resume = bool(self.c.get("resume", True))
+        self.results: dict[str, Any] = {"stage": self.c["stage"]}
+        self.guidance = self.perceptual = None
+
+    # ------------------------------------------------------------------ shared pieces
+    def prepare_guidance(self) -> None:
+        """Build CLIP/VGG (or toy) first, so missing weights fail before any training."""
+        from nerfart_plugin.guidance import augment_prompt, build_guidance, build_perceptual, validate_prompt
+
+        g = self.c["guidance"]
+        self.guidance = build_guidance(g)
+        self.perceptual = build_perceptual(g)
+        self.real = bool(self.guidance.is_real and getattr(self.perceptual, "is_real", True))
+        self.stamp = "" if self.real else f"_UNSTYLED-{g['name']}"
+        if not self.real:
+            log.warning("guidance is not a real pretrained model (%s): every output is stamped %r",
+                        g["name"], self.stamp)
+        raw = validate_prompt(self.c["prompt"])
+        self.prompt = augment_prompt(raw) if self.c.get("prompt_augment", True) else raw
+        if self.prompt != raw:
+            log.info("prompt augmented: %r -> %r", raw, self.prompt)
+        self.raw_prompt = raw
+
+    def load_data(self) -> None:
+        from nerfart_plugin.data.datamodule import SceneDataModule
+        from nerfart_plugin.systems.scene_setup import decide_setup
+
+        dcfg = dict(self.c["data"])
+        dcfg.setdefault("background_color", self.c["render"].get("background_color"))
+        dcfg["seed"] = self.c["seed"]
+        dcfg["batch_rays"] = self.c["reconstruct"]["batch_rays"]
+        self.dm = SceneDataModule(dcfg)
+        self.scene = self.dm.load()
+        for note in self.scene.notes:
+            log.info("data: %s", note)
+        self.setup = decide_setup(self.scene, self.c["render"], ndc=self.dm.ndc)
+        key_src = {"scene": self.scene.content_hash, "data": self.c["data"], "backbone": self.c["backbone"],
+                   "encoding": self.c["encoding"], "render": self.c["render"], "seed": self.c["seed"],
+                   "reconstruct": {k: v for k, v in self.c["reconstruct"].items()
+                                   if k not in ("val_every", "val_views", "checkpoint_every")}}
+        self.recon_key = config_hash(key_src)
+        name = f"{self.c['data']['kind']}-{self.c['backbone']['name']}-{self.c['encoding']['name']}-{self.recon_key}"
+        self.recon_dir = self.root / "reconstructions" / name
+
+    def _components(self) -> tuple[dict, dict, dict]:
+        return self.c["backbone"], self.c["encoding"], self.c["render"]
+
+    # ------------------------------------------------------------------ stage 1
+    def reconstruct(self) -> Path:
+        from nerfart_plugin.systems.callbacks import AtomicCheckpoint, FiniteGradientGuard
+        from nerfart_plugin.systems.base import steps_loader
+        from nerfart_plugin.systems.reconstruction import ReconstructionSystem
+
+        run_dir, rc = self.recon_dir, self.c["reconstruct"]
+        final = run_dir / "final.ckpt"
+        if final.exists():
+            log.info("reusing the cached reconstruction %s (same data, backbone and settings)", run_dir)
+            return final
+        _prepare_dir(run_dir, self.resume)
+        atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(self.c)))
+        self.dm.setup("fit")
+        system = ReconstructionSystem(rc, *self._components(), self.setup, train_rays=self.dm.train_rays,
+                                      seed=self.c["seed"], out_dir=str(run_dir))
+        ckpt = AtomicCheckpoint(run_dir, rc.get("checkpoint_every", 100))
+        trainer = _trainer(run_dir, int(rc["steps"]), self.device, [ckpt, FiniteGradientGuard()],
+                           self.c["trainer"]["precision"], self.c["trainer"]["log_every_n_steps"],
+                           val_check_interval=int(rc.get("val_every", 500)), check_val_every_n_epoch=None,
+                           limit_val_batches=int(rc.get("val_views", 2)) or 1.0)
+        last = run_dir / "last.ckpt"
+        ckpt_path = str(last) if last.exists() else None
+        if ckpt_path:
+            log.info("resuming the reconstruction from %s", last)
+        t0 = time.perf_counter()
+        self._fit(trainer, system, val=self.dm.val_dataloader(), ckpt_path=ckpt_path)
+        seconds = time.perf_counter() - t0
+        metrics = self.evaluate_reconstruction(system)
+        metrics.update({"train_seconds_this_process": seconds, "steps": int(trainer.global_step),
+                        "scene_setup": self.setup.to_dict(), "notes": self.scene.notes,
+                        "occupied_fraction": (system.renderer.occupancy.occupied_fraction
+                                              if system.renderer.occupancy is not None else None)})
+        atomic_write_json(run_dir / "metrics.json", metrics)
+        if self.c["export"].get("enabled", True):
+            self.export_mesh(system.renderer.field, run_dir / "mesh" / "source")
+        with atomic_path(final) as tmp:
+            trainer.save_checkpoint(tmp)
+        log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics.get("psnr", float("nan")), run_dir)
+        self.results["reconstruction"] = {"dir": str(run_dir), **{k: metrics[k] for k in metrics
+                                                                   if k.startswith(("psnr", "ssim"))}}
+        return final
+
+    def _fit(self, trainer: L.Trainer, system: L.LightningModule, val: Any = None, ckpt_path: Optional[str] = None) -> None:
+        from nerfart_plugin.systems.base import steps_loader
+
+        try:
+            trainer.fit(system, train_dataloaders=steps_loader(), val_dataloaders=val, ckpt_path=ckpt_path)
+        except torch.OutOfMemoryError as exc:
+            raise NerfArtError(_OOM_HINT) from exc
+        except RuntimeError as exc:
+            if "out of memory" in str(exc).lower():
+                raise NerfArtError(_OOM_HINT) from exc
+            raise
+
+    @torch.no_grad()
+    def evaluate_reconstruction(self, system) -> dict[str, Any]:
+        """PSNR / SSIM / masked PSNR over all held-out views."""
+        from nerfart_plugin.systems.reconstruction import view_metrics
+
+        system.to(self.device).eval()
+        per_view = []
+        for batch in self.dm.val_dataloader():
+            img = system.render_view(batch, chunk=int(self.c["render"]["chunk"]))
+            target = batch["rgb"].reshape(img["rgb"].shape).to(self.device)
+            per_view.append(view_metrics(img["rgb"], target, batch.get("mask")))
+        keys = set().union(*per_view) if per_view else set()
+        out = {k: float(sum(m[k] for m in per_view if k in m) / sum(1 for m in per_view if k in m)) for k in keys}
+        out["val_views"] = len(per_view)
+        return out
+
+    # ------------------------------------------------------------------ stage 2
+    def stylize(self, recon_ckpt: Path) -> Path:
+        from nerfart_plugin.guidance import default_source_prompt, load_negatives
+        from nerfart_plugin.systems.base import steps_loader
+        from nerfart_plugin.systems.callbacks import AtomicCheckpoint
+        from nerfart_plugin.systems.stylization import StylizationSystem, style_views
+
+        sc, exp = self.c["stylize"], self.c["experiment"]
+        src_prompt = self.c.get("source_prompt", "auto")
+        if src_prompt in (None, "auto"):
+            src_prompt = default_source_prompt(self.scene.capture, has_person=self.scene.masks is not None)
+        key = config_hash({"recon": str(recon_ckpt.resolve()) if self.c.get("source_checkpoint") else self.recon_key,
+                           "prompt": self.prompt, "source_prompt": src_prompt, "guidance": self.c["guidance"],
+                           "experiment": exp, "seed": self.c["seed"],
+                           "stylize": {k: v for k, v in sc.items() if k not in ("render_every", "checkpoint_every",
+                                                                                "video_frames", "video_fps")}})
+        run_dir = self.root / "stylizations" / f"{slug(self.raw_prompt)}-{self.c['backbone']['name']}-{key}{self.stamp}"
+        final = run_dir / "final.ckpt"
+        if final.exists():
+            log.info("this stylization is already complete: %s (not recomputed, not overwritten)", run_dir)
+            self.results["stylization"] = {"dir": str(run_dir)}
+            return final
+        _prepare_dir(run_dir, self.resume)
+        atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(self.c)))
+        views = style_views(self.scene, self.scene.train_ids, int(sc["resolution"]), self.dm.ndc)
+        system = StylizationSystem(sc, exp, *self._components(), self.setup, _renderer_state(recon_ckpt), views,
+                                   self.guidance, self.perceptual, self.prompt, src_prompt, load_negatives(),
+                                   seed=self.c["seed"], out_dir=str(run_dir), stamp=self.stamp)
+        ckpt = AtomicCheckpoint(run_dir, sc.get("checkpoint_every", 10))
+        trainer = _trainer(run_dir, int(sc["steps"]), self.device, [ckpt], self.c["trainer"]["precision"],
+                           self.c["trainer"]["log_every_n_steps"], limit_val_batches=0)
+        last = run_dir / "last.ckpt"
+        if last.exists():
+            log.info("resuming the stylization from %s", last)
+        t0 = time.perf_counter()
+        self._fit(trainer, system, ckpt_path=str(last) if last.exists() else None)
+        seconds = time.perf_counter() - t0
+        metrics = self.stylization_outputs(system, run_dir)
+        metrics.update({"prompt": self.raw_prompt, "prompt_used": self.prompt, "source_prompt": src_prompt,
+                        "guidance": self.c["guidance"]["name"], "guidance_is_real": self.real,
+                        "stamp": self.stamp or None, "experiment": exp, "steps": int(trainer.global_step),
+                        "train_seconds_this_process": seconds, "last_step_timings_s": system.timings,
+                        "negatives_excluded": [n for n, _ in getattr(system.neg_sampler, "excluded", [])]
+                        if system.neg_sampler is not None else []})
+        if not self.real:
+            metrics["WARNING"] = "UNSTYLED by a real model: random or toy guidance weights were used"
+        atomic_write_json(run_dir / "metrics.json", metrics)
+        with atomic_path(final) as tmp:
+            trainer.save_checkpoint(tmp)
+        log.info("stylization done -> %s", run_dir)
+        self.results["stylization"] = {"dir": str(run_dir), **{k: v for k, v in metrics.items()
+                                                               if k.startswith(("clip_", "view_", "mesh_"))}}
+        return final
+
+    @torch.no_grad()
+    def stylization_outputs(self, system, run_dir: Path) -> dict[str, Any]:
+        """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
+        from nerfart_plugin.data.camera_path import orbit_path
+        from nerfart_plugin.evaluation import clip_scores, view_consistency
+        from nerfart_plugin.export.video import side_by_side, write_video
+        from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8, style_views
+
+        system.to(self.device).eval()
+        sc = self.c["stylize"]
+        ids = self.scene.val_ids or self.scene.train_ids[:4]
+        eval_views = style_views(self.scene, ids, int(sc["resolution"]), self.dm.ndc)
+        sty = torch.stack([system.render_batch(v)["rgb"].permute(2, 0, 1) for v in eval_views])
+        src = torch.stack([system.render_batch(v, source=True)["rgb"].permute(2, 0, 1) for v in eval_views])
+        metrics: dict[str, Any] = clip_scores(system.guidance, sty.clamp(0, 1), src.clamp(0, 1), self.prompt,
+                                              system.source_prompt)
+        # camera-path video, source | stylized, and view consistency along it
+        n = int(sc.get("video_frames", 24))
+        c2ws = orbit_path(self.scene, n)
+        ref = eval_views[0]
+        K = self.scene.K[0].clone()
+        K[0] *= ref["W"] / self.scene.width
+        K[1] *= ref["H"] / self.scene.height
+        near, far = float(self.scene.near.min()), float(self.scene.far.max())
+        frames, sty_frames, src_frames = [], [], []
+        for c2w in c2ws:
+            b = camera_batch(K, c2w, ref["H"], ref["W"], near, far, self.dm.ndc)
+            a, s = system.render_batch(b, source=True), system.render_batch(b)
+            src_frames.append(a)
+            sty_frames.append(s)
+            frames.append(side_by_side(image_to_uint8(a["rgb"]), image_to_uint8(s["rgb"]),
+                                       labels=("source", "stylized" + (" (UNSTYLED: toy/random)" if self.stamp else ""))))
+        write_video(frames, run_dir / f"video{self.stamp}.mp4", fps=int(sc.get("video_fps", 12)))
+        if not self.dm.ndc:
+            Kd = K.to(self.device)
+            metrics["view_consistency_error"] = view_consistency(sty_frames, Kd, c2ws)
+            metrics["view_consistency_error_source"] = view_consistency(src_frames, Kd, c2ws)
+        else:
+            metrics["view_consistency_error"] = None  # depth is NDC t: warping not implemented for NDC
+        if self.c["export"].get("enabled", True):
+            metrics.update(self.compare_meshes(system, run_dir))
+        return metrics
+
+    # ------------------------------------------------------------------ meshes
+    def export_mesh(self, field, stem: Path):
+        from nerfart_plugin.export import MeshExtractor, export_mesh
+
+        ec = self.c["export"]
+        ex = MeshExtractor(resolution=int(ec["resolution"]), bound=float(field.bound), chunk=int(ec["chunk"]),
+                           remove_floaters=bool(ec.get("remove_floaters", True)))
+        try:
+            mesh = ex.extract(field)
+        except NerfArtError as exc:
+            log.warning("no mesh for %s: %s", stem, exc)
+            return None
+        for fmt in ec.get("formats", ["ply"]):
+            export_mesh(mesh, stem.with_suffix(f".{fmt}"))
+        return mesh
+
+    def compare_meshes(self, system, run_dir: Path) -> dict[str, Any]:
+        from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
+
+        src = self.export_mesh(system.source.field, run_dir / "mesh" / "source")
+        sty = self.export_mesh(system.renderer.field, run_dir / "mesh" / f"stylized{self.stamp}")
+        if src is None or sty is None:
+            return {}
+        sdf = system.source.field.geometry if system.source.field.is_sdf else None
+        m = compare_meshes(sty, src, n_samples=20_000, source_sdf=sdf)
+        d = vertex_distances(sty, src, source_sdf=sdf)
+        from nerfart_plugin.export import export_mesh
+
+        export_mesh(displacement_mesh(sty, d), run_dir / "mesh" / f"displacement{self.stamp}.ply")
+        return {f"mesh_{k}": v for k, v in m.items()}
+
+    def export_stage(self) -> None:
+        """``stage=export``: meshes from ``source_checkpoint`` (or the cached reconstruction)."""
+        from nerfart_plugin.systems.base import build_renderer
+
+        ckpt = Path(self.c["source_checkpoint"]) if self.c.get("source_checkpoint") else self.recon_dir / "final.ckpt"
+        if not ckpt.exists():
+            raise NerfArtError(f"stage=export: no checkpoint at {ckpt}. Run stage=reconstruct first or pass "
+                               "source_checkpoint=/path/to/final.ckpt.")
+        renderer = build_renderer(*self._components(), self.setup)
+        renderer.load_state_dict(_renderer_state(ckpt))
+        renderer.to(self.device).eval()
+        stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.c['export']['resolution']}"
+        mesh = self.export_mesh(renderer.field, stem)
+        self.results["export"] = {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)}
+
+    # ------------------------------------------------------------------ run
+    def run(self) -> dict[str, Any]:
+        stage = self.c["stage"]
+        L.seed_everything(int(self.c["seed"]), workers=True, verbose=False)
+        if stage in ("stylize", "all"):
+            self.prepare_guidance()
+        self.load_data()
+        if stage == "export":
+            self.export_stage()
+            return self.results
+        recon = Path(self.c["source_checkpoint"]) if self.c.get("source_checkpoint") else self.recon_dir / "final.ckpt"
+        if stage in ("reconstruct", "all") and not self.c.get("source_checkpoint"):
+            recon = self.reconstruct()
+        if stage in ("stylize", "all"):
+            if not recon.exists():
+                raise NerfArtError(f"No reconstruction at {recon} for this data + backbone + settings. Run "
+                                   "stage=reconstruct (or stage=all) first, or pass source_checkpoint=/path/final.ckpt.")
+            self.stylize(recon)
+        return self.results
+
+
+def run(cfg: DictConfig | dict) -> dict[str, Any]:
+    """Entry point used by ``python -m nerfart_plugin``; writes ``result.json`` in Hydra's job folder."""
+    results = Pipeline(cfg).run()
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        out = Path(HydraConfig.get().runtime.output_dir)
+        atomic_write_json(out / "result.json", results)
+    except ValueError:  # not under Hydra
+        pass
+    return results

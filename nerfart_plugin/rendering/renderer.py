@@ -1,0 +1,183 @@
+"""Backbone-agnostic volume renderer (NeRF-Art Eq. 1).
+
+The renderer places K sections per ray (stratified, or occupancy-guided when an
+``OccupancyGrid`` is given), queries ``field.forward`` at the section
+midpoints, converts to opacities with ``field.alpha`` and composites:
+``rgb = sum_k w_k c_k + T_final * c_bg``, ``w_k = T_k alpha_k``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional, Sequence
+
+import torch
+import torch.nn as nn
+from torch import Tensor
+
+from nerfart_plugin.errors import DataError
+from nerfart_plugin.fields.base import Field
+from nerfart_plugin.fields.occupancy import OccupancyGrid
+from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples
+from nerfart_plugin.rendering.volume import weights_from_alpha
+
+__all__ = ["VolumeRenderer"]
+
+
+class VolumeRenderer(nn.Module):
+    """Render ray batches through a ``Field``.
+
+    Args:
+        field: any backbone (only ``forward`` and ``alpha`` are used).
+        num_samples: K sections per ray.
+        background: optional direction-conditioned model ``c_bg(d)`` (e.g.
+            ``EnvironmentMap``) composited with the remaining transmittance.
+        occupancy: optional ``OccupancyGrid``; enables empty-space skipping.
+        background_color: constant background ``(r,g,b)`` used when there is no
+            background model (default white); ``None`` = no compositing (the
+            remaining transmittance shows black). A batch may override it per
+            ray with ``batch["bg_color"]`` ([R,3] or [3]), e.g. random
+            backgrounds for masked training.
+        num_coarse: coarse occupancy queries per ray for occupancy sampling.
+        clip_to_bound: restrict [near, far] to the ray's intersection with the
+            field's box [-bound, bound]^3 (rays that miss it get zero-length
+            sections and render the background).
+    """
+
+    def __init__(
+        self,
+        field: Field,
+        num_samples: int = 64,
+        background: Optional[nn.Module] = None,
+        occupancy: Optional[OccupancyGrid] = None,
+        background_color: Optional[Sequence[float]] = (1.0, 1.0, 1.0),
+        num_coarse: int = 256,
+        clip_to_bound: bool = True,
+    ) -> None:
+        super().__init__()
+        self.field = field
+        self.num_samples = int(num_samples)
+        self.background = background
+        self.occupancy = occupancy
+        self.num_coarse = int(num_coarse)
+        self.clip_to_bound = bool(clip_to_bound)
+        if background_color is None:
+            self.background_color: Optional[Tensor] = None
+        else:
+            self.register_buffer("background_color", torch.tensor(list(background_color), dtype=torch.float32), persistent=False)
+
+    # ------------------------------------------------------------------------------------------
+    def ray_bounds(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
+        """[near, far] per ray, clipped to the field's box if ``clip_to_bound`` (near == far if it misses)."""
+        near = near.float().reshape(-1)
+        far = far.float().reshape(-1)
+        if self.clip_to_bound:
+            t0, t1 = ray_aabb(rays_o, rays_d, self.field.bound)
+            near = torch.maximum(near, t0)
+            far = torch.minimum(far, t1)
+        far = torch.maximum(far, near)
+        return near, far
+
+    def sample(self, batch: dict[str, Any], perturb: bool, generator: Optional[torch.Generator] = None) -> Tensor:
+        """``t_samples`` [R,K,2] (section start/end in ray parameter), no grad."""
+        rays_o, rays_d = batch["rays_o"], batch["rays_d"]
+        near, far = self.ray_bounds(rays_o, rays_d, batch["near"], batch["far"])
+        if self.occupancy is not None:
+            return occupancy_samples(rays_o, rays_d, near, far, self.occupancy, self.num_samples,
+                                     self.num_coarse, perturb, generator)
+        return stratified_samples(near, far, self.num_samples, perturb, generator)
+
+    def _background(self, batch: dict[str, Any], dirs: Tensor) -> Optional[Tensor]:
+        if "bg_color" in batch and batch["bg_color"] is not None:
+            return torch.as_tensor(batch["bg_color"], dtype=torch.float32, device=dirs.device).expand(dirs.shape[0], 3)
+        if self.background is not None:
+            return self.background(dirs).float()
+        if self.background_color is not None:
+            return self.background_color.to(dirs.device).expand(dirs.shape[0], 3)
+        return None
+
+    # ------------------------------------------------------------------------------------------
+    def forward(
+        self,
+        batch: dict[str, Any],
+        perturb: bool = False,
+        t_samples: Optional[Tensor] = None,
+        generator: Optional[torch.Generator] = None,
+    ) -> dict[str, Tensor]:
+        """Render rays ``batch`` (``rays_o`` [R,3], ``rays_d`` [R,3], ``near`` [R], ``far`` [R]).
+
+        Returns a dict with ``rgb`` [R,3], ``depth`` [R] (expected ray
+        parameter of termination ``sum w t / opacity``, clamped to the sampled
+        range; for NDC rays it is NDC t), ``opacity`` [R] (``sum w``),
+        ``weights`` [R,K], ``t`` [R,K] (section midpoints), ``deltas`` [R,K]
+        (section lengths ``(t_end - t_start) ||rays_d||``), ``t_samples``
+        [R,K,2] (pass back to reproduce the same samples); SDF fields add
+        ``normal`` [R,3] (``sum w n``) and, when grad is enabled, the field's
+        regularizers (``eikonal``: mean over samples of ``(|grad sdf| - 1)^2``).
+        """
+        for key in ("rays_o", "rays_d", "near", "far"):
+            if key not in batch:
+                raise DataError(f"ray batch lacks {key!r}; build it with nerfart_plugin.data.rays (keys rays_o, rays_d, near, far).")
+        rays_o = batch["rays_o"].float()
+        rays_d = batch["rays_d"].float()
+        R, K = rays_o.shape[0], self.num_samples
+        if t_samples is None:
+            t_samples = self.sample(batch, perturb, generator)
+        elif t_samples.shape[:1] != (R,) or t_samples.shape[-1] != 2:
+            raise DataError(f"t_samples has shape {tuple(t_samples.shape)}, expected [{R},K,2]: pass back the 't_samples' a previous call returned.")
+        t_samples = t_samples.detach()
+        K = t_samples.shape[1]
+        t_start, t_end = t_samples[..., 0], t_samples[..., 1]
+        t = 0.5 * (t_start + t_end)  # [R,K]
+        d_norm = rays_d.norm(dim=-1, keepdim=True)  # [R,1]
+        deltas = (t_end - t_start).clamp_min(0.0) * d_norm
+        dirs = rays_d / d_norm.clamp_min(1e-12)  # unit
+        pts = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [R,K,3]
+        dirs_k = dirs[:, None, :].expand(R, K, 3)
+
+        out = self.field(pts.reshape(-1, 3), dirs_k.reshape(-1, 3))
+        alpha = self.field.alpha(out, deltas, dirs_k).float()
+        alpha = torch.where(deltas > 0, alpha, torch.zeros_like(alpha))  # zero-length section = transparent
+        weights, _ = weights_from_alpha(alpha)
+        rgb_k = out["rgb"].reshape(R, K, 3).float()
+        opacity = weights.sum(-1)
+        rgb = (weights[..., None] * rgb_k).sum(-2)
+        bg = self._background(batch, dirs)
+        if bg is not None:
+            rgb = rgb + (1.0 - opacity).clamp_min(0.0)[..., None] * bg
+        depth = (weights * t).sum(-1) / opacity.clamp_min(1e-10)
+        depth = torch.minimum(torch.maximum(depth, t_start[:, 0]), t_end[:, -1])
+
+        result: dict[str, Tensor] = {
+            "rgb": rgb, "depth": depth, "opacity": opacity, "weights": weights,
+            "t": t, "deltas": deltas, "t_samples": t_samples,
+        }
+        if getattr(self.field, "is_sdf", False):
+            normal = out["normal"].reshape(R, K, 3).float()
+            result["normal"] = (weights[..., None] * normal).sum(-2)
+        if torch.is_grad_enabled():
+            result.update(self.field.regularizers(out))
+        return result
+
+    @torch.no_grad()
+    def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False) -> dict[str, Tensor]:
+        """Render a large ray batch (e.g. a full view) in chunks without grad.
+
+        Returns ``rgb`` [R,3], ``depth`` [R], ``opacity`` [R] (and ``normal``
+        [R,3] for SDF fields), concatenated over chunks; ints ``H``/``W`` in the
+        batch are passed through unchanged.
+        """
+        R = batch["rays_o"].shape[0]
+        keys = ("rgb", "depth", "opacity", "normal")
+        parts: dict[str, list[Tensor]] = {}
+        for s in range(0, R, int(chunk)):
+            sub = {k: (v[s : s + chunk] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == R else v)
+                   for k, v in batch.items()}
+            res = self.forward(sub, perturb=perturb)
+            for k in keys:
+                if k in res:
+                    parts.setdefault(k, []).append(res[k])
+        merged: dict[str, Any] = {k: torch.cat(v, 0) for k, v in parts.items()}
+        for k in ("H", "W"):
+            if k in batch:
+                merged[k] = batch[k]
+        return merged

@@ -1,0 +1,197 @@
+"""Sample placement along rays: stratified, inverse-CDF, occupancy-guided.
+
+Samples are *intervals*: a sampler returns ``t_samples`` of shape [R,K,2]
+holding ``(t_start, t_end)`` of each of the K sections of each ray, sorted and
+pairwise disjoint (gaps are allowed: that is how empty space is skipped). The
+sample point is the interval midpoint and its length is the section length
+``delta`` (times ``||rays_d||``). Keeping shapes fixed at [R,K] keeps everything
+downstream dense. Passing the same ``t_samples`` back into the renderer
+reproduces the exact same samples.
+
+Random jitter takes an optional ``torch.Generator``; it is drawn on the
+generator's device and moved to the rays' device, so a CPU generator also
+drives CUDA rendering deterministically.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Optional
+
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:  # pragma: no cover
+    from nerfart_plugin.fields.occupancy import OccupancyGrid
+
+__all__ = [
+    "uniform_rand",
+    "stratified_edges",
+    "edges_to_intervals",
+    "stratified_samples",
+    "sample_pdf",
+    "occupancy_samples",
+    "ray_aabb",
+]
+
+
+def uniform_rand(shape: tuple[int, ...], device: torch.device, generator: Optional[torch.Generator] = None) -> Tensor:
+    """U[0,1) float32 of ``shape`` on ``device``, drawn from ``generator`` (on its own device) if given."""
+    gen_device = generator.device if generator is not None else device
+    return torch.rand(shape, generator=generator, device=gen_device, dtype=torch.float32).to(device)
+
+
+def stratified_edges(
+    near: Tensor, far: Tensor, num_samples: int, perturb: bool = False, generator: Optional[torch.Generator] = None
+) -> Tensor:
+    """K+1 bin edges per ray from ``near`` to ``far`` (both included), sorted.
+
+    Unperturbed: uniform edges. Perturbed: every interior edge moves by
+    U(-1/2, 1/2) bin widths, so the edges stay sorted, the first/last stay at
+    near/far and the midpoints cover each bin continuously.
+
+    Args:
+        near, far: [R] ray-parameter bounds (far >= near; equal is allowed).
+    Returns:
+        edges [R,K+1] float32.
+    """
+    near = near.float().reshape(-1, 1)
+    far = torch.maximum(far.float().reshape(-1, 1), near)
+    R, K = near.shape[0], int(num_samples)
+    u = torch.linspace(0.0, 1.0, K + 1, device=near.device).expand(R, K + 1)
+    if perturb and K > 1:
+        jitter = (uniform_rand((R, K - 1), near.device, generator) - 0.5) / K
+        u = torch.cat([u[:, :1], u[:, 1:-1] + jitter, u[:, -1:]], dim=-1)
+    return near + (far - near) * u
+
+
+def edges_to_intervals(edges: Tensor) -> Tensor:
+    """Contiguous edges [R,K+1] -> intervals [R,K,2] ``(start, end)``."""
+    return torch.stack([edges[..., :-1], edges[..., 1:]], dim=-1)
+
+
+def stratified_samples(
+    near: Tensor, far: Tensor, num_samples: int, perturb: bool = False, generator: Optional[torch.Generator] = None
+) -> Tensor:
+    """Stratified uniform sections between near and far: ``t_samples`` [R,K,2]."""
+    return edges_to_intervals(stratified_edges(near, far, num_samples, perturb, generator))
+
+
+def _invert_cdf(bins: Tensor, cdf: Tensor, u: Tensor) -> Tensor:
+    """Piecewise-linear inverse of ``cdf`` (values at ``bins`` [R,B+1]) at sorted ``u`` [R,N]."""
+    u = u.contiguous()
+    idx = torch.searchsorted(cdf.contiguous(), u, right=True)
+    below = (idx - 1).clamp(0, cdf.shape[-1] - 1)
+    above = idx.clamp(0, cdf.shape[-1] - 1)
+    cdf_lo, cdf_hi = cdf.gather(-1, below), cdf.gather(-1, above)
+    bin_lo, bin_hi = bins.gather(-1, below), bins.gather(-1, above)
+    denom = cdf_hi - cdf_lo
+    # Empty bins (denom == 0) contribute nothing; any t inside is fine, take the lower edge.
+    frac = torch.where(denom > 1e-12, (u - cdf_lo) / denom.clamp_min(1e-12), torch.zeros_like(u))
+    return bin_lo + frac.clamp(0.0, 1.0) * (bin_hi - bin_lo)
+
+
+def sample_pdf(
+    bins: Tensor,
+    weights: Tensor,
+    num_samples: int,
+    perturb: bool = False,
+    generator: Optional[torch.Generator] = None,
+    eps: float = 1e-5,
+) -> Tensor:
+    """Inverse-CDF sampling of a piecewise-constant pdf (NeRF hierarchical sampling).
+
+    Args:
+        bins: [R,B+1] sorted bin edges.
+        weights: [R,B] non-negative bin weights (need not be normalized);
+            ``eps`` is added to every weight so an all-zero row falls back to
+            uniform sampling instead of dividing by zero. Detached.
+        num_samples: N.
+        perturb: stratified random ``u`` (one per stratum) instead of the
+            deterministic stratum centres.
+    Returns:
+        t [R,N] sorted, within [bins[:,0], bins[:,-1]]; no gradient.
+    """
+    bins = bins.detach().float()
+    weights = weights.detach().float().clamp_min(0.0) + eps
+    pdf = weights / weights.sum(-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[..., :1]), torch.cumsum(pdf, -1)], -1).clamp(max=1.0)
+    cdf[..., -1] = 1.0
+    R, N = bins.shape[0], int(num_samples)
+    offset = uniform_rand((R, N), bins.device, generator) if perturb else torch.full((R, N), 0.5, device=bins.device)
+    u = (torch.arange(N, device=bins.device, dtype=torch.float32) + offset) / N
+    return _invert_cdf(bins, cdf, u)
+
+
+def ray_aabb(rays_o: Tensor, rays_d: Tensor, bound: float) -> tuple[Tensor, Tensor]:
+    """Entry/exit ray parameters of the box [-bound, bound]^3 (slab test).
+
+    Returns ``(t_min [R], t_max [R])``; rays missing the box get ``t_min > t_max``.
+    Zero direction components are handled by a tiny substitute (1e-15 keeps the
+    slab bounds finite and of the right sign).
+    """
+    d = rays_d.float()
+    d = torch.where(d.abs() < 1e-15, torch.full_like(d, 1e-15), d)
+    inv = 1.0 / d
+    t0 = (-bound - rays_o.float()) * inv
+    t1 = (bound - rays_o.float()) * inv
+    t_min = torch.minimum(t0, t1).amax(-1)
+    t_max = torch.maximum(t0, t1).amin(-1)
+    return t_min, t_max
+
+
+@torch.no_grad()
+def occupancy_samples(
+    rays_o: Tensor,
+    rays_d: Tensor,
+    near: Tensor,
+    far: Tensor,
+    occupancy: "OccupancyGrid",
+    num_samples: int,
+    num_coarse: int = 256,
+    perturb: bool = False,
+    generator: Optional[torch.Generator] = None,
+    dilate: int = 1,
+) -> Tensor:
+    """Occupancy-guided sections: empty-space skipping with a fixed [R,K] shape.
+
+    1. ``num_coarse`` uniform bins between near and far; the occupancy grid
+       (no grad, nearest cell) is queried at each bin centre and the occupied
+       set is dilated by ``dilate`` bins on each side (so thin shells sampled
+       between two coarse centres are not lost).
+    2. A pdf that is uniform over the occupied bins is inverted at K stratified
+       ``u`` sections ``[u_k, u_{k+1}]``. Section k becomes the interval centred
+       at ``t(u_mid)`` whose length is the *occupied* length it covers,
+       ``(u_{k+1} - u_k) * L_occ``; because ``t`` is piecewise linear with
+       slope >= 1/L_occ, these intervals are sorted and disjoint, lie within
+       [near, far] and their lengths sum to the occupied length: the empty gaps
+       are skipped, not integrated.
+    3. Rays with no occupied bin keep uniform samples but get zero-length
+       intervals: the field is still evaluated (valid points), but every alpha
+       is 0, so the renderer returns the background colour for them.
+
+    Returns:
+        t_samples [R,K,2] float32, no gradient.
+    """
+    R = rays_o.shape[0]
+    M = int(num_coarse)
+    coarse = stratified_edges(near, far, M, perturb=False)  # [R,M+1]
+    mids = 0.5 * (coarse[:, :-1] + coarse[:, 1:])
+    pts = rays_o.float()[:, None, :] + rays_d.float()[:, None, :] * mids[..., None]
+    occ = occupancy.query(pts.reshape(-1, 3)).reshape(R, M).float()
+    if dilate > 0:
+        occ = torch.nn.functional.max_pool1d(occ[:, None], 2 * dilate + 1, stride=1, padding=dilate)[:, 0]
+    widths = coarse[:, 1:] - coarse[:, :-1]
+    hit = (occ * widths).sum(-1) > 0
+    weights = torch.where(hit[:, None], occ, torch.ones_like(occ)) * widths  # mass of each bin
+    mass = weights.sum(-1, keepdim=True)  # L_occ (or far-near for the fallback)
+    cdf = torch.cat([torch.zeros_like(mass), torch.cumsum(weights, -1)], -1) / mass.clamp_min(1e-12)
+    cdf[:, -1] = 1.0
+    cdf = cdf.clamp(max=1.0)
+    u_edges = stratified_edges(torch.zeros(R, device=rays_o.device), torch.ones(R, device=rays_o.device),
+                               num_samples, perturb, generator)
+    u_mid = 0.5 * (u_edges[:, :-1] + u_edges[:, 1:])
+    centre = _invert_cdf(coarse, cdf, u_mid)
+    length = (u_edges[:, 1:] - u_edges[:, :-1]) * mass * hit[:, None].float()
+    lo = torch.maximum(centre - 0.5 * length, coarse[:, :1])
+    hi = torch.minimum(centre + 0.5 * length, coarse[:, -1:])
+    return torch.stack([lo, hi], dim=-1)

@@ -1,0 +1,82 @@
+"""Memory-saving exact backprop through a full rendered view (NeRF-Art Section 4.4).
+
+CLIP and VGG need the whole view, but rendering a whole view with grad keeps
+every sample's activations alive. Instead:
+
+1. render the full view without grad, in chunks, with stratified jitter fixed
+   for this step (the returned ``t_samples`` record the samples);
+2. compute the image losses on that image and their gradient ``dL/dI`` [R,3];
+3. re-render the rays patch by patch *with* grad at exactly the same samples
+   and back-propagate ``sum(rgb_patch * dL/dI_patch)`` (plus any per-ray loss
+   such as the weight regularization of Eq. 7, scaled by the patch's share of
+   rays), accumulating parameter gradients.
+
+Since the image is a sum of independent per-ray renders, the accumulated
+gradient equals that of full backprop (up to float summation order).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable, Optional
+
+import torch
+from torch import Tensor
+
+from nerfart_plugin.rendering.renderer import VolumeRenderer
+
+RayLoss = Callable[[dict[str, Tensor]], Tensor]
+
+
+def _slice(batch: dict[str, Any], idx: slice, n: int) -> dict[str, Any]:
+    return {k: (v[idx] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v) for k, v in batch.items()}
+
+
+@torch.no_grad()
+def render_fixed_samples(renderer: VolumeRenderer, batch: dict[str, Any], chunk: int, perturb: bool = True,
+                         generator: Optional[torch.Generator] = None) -> dict[str, Tensor]:
+    """Pass 1: render all rays of ``batch`` without grad; returns ``rgb`` [R,3], ``depth`` [R],
+    ``opacity`` [R] and the ``t_samples`` [R,K,2] to reuse in pass 2."""
+    n = batch["rays_o"].shape[0]
+    keys = ("rgb", "depth", "opacity", "t_samples")
+    parts: dict[str, list[Tensor]] = {k: [] for k in keys}
+    for s in range(0, n, chunk):
+        out = renderer(_slice(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator)
+        for k in keys:
+            parts[k].append(out[k])
+    return {k: torch.cat(v, 0) for k, v in parts.items()}
+
+
+def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples: Tensor, rgb_grad: Tensor,
+                     patch_rays: int, ray_losses: Optional[dict[str, tuple[float, RayLoss]]] = None,
+                     backward: Callable[[Tensor], None] = torch.autograd.backward) -> dict[str, float]:
+    """Pass 3: re-render ``batch`` in patches of ``patch_rays`` rays with grad and back-propagate.
+
+    Args:
+        renderer: the renderer being optimized.
+        batch: the full-view ray batch used in pass 1.
+        t_samples: [R,K,2] from :func:`render_fixed_samples` (identical samples).
+        rgb_grad: [R,3] gradient of the image losses w.r.t. the rendered colours.
+        patch_rays: rays per re-rendered patch (memory knob).
+        ray_losses: optional ``name -> (lambda, fn(render_out) -> per-patch mean loss)``,
+            e.g. Eq. 7; each is weighted by the patch's share of rays so the total
+            equals the mean over all rays.
+        backward: how to back-propagate a scalar (``LightningModule.manual_backward`` in training).
+
+    Returns:
+        the value of each ray loss (mean over all rays), for logging.
+    """
+    n = batch["rays_o"].shape[0]
+    ray_losses = {k: v for k, v in (ray_losses or {}).items() if v[0] != 0.0}
+    totals = {k: 0.0 for k in ray_losses}
+    for s in range(0, n, patch_rays):
+        sl = slice(s, s + patch_rays)
+        sub = _slice(batch, sl, n)
+        out = renderer(sub, perturb=False, t_samples=t_samples[sl])
+        share = out["rgb"].shape[0] / n
+        surrogate = (out["rgb"] * rgb_grad[sl]).sum()
+        for name, (lam, fn) in ray_losses.items():
+            value = fn(out)
+            totals[name] += float(value.detach()) * share
+            surrogate = surrogate + lam * share * value
+        backward(surrogate)
+    return totals

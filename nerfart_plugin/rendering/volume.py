@@ -1,0 +1,165 @@
+"""Volume-rendering primitives (NeRF-Art Eq. 1) and SDF-to-opacity conversions.
+
+Every function here computes in float32 (inputs are up-cast) so that they stay
+finite under float16/bfloat16 autocast, and every one of them returns finite
+values *and* finite gradients for the extreme inputs listed in its docstring
+(checked by ``tests/test_stability_rendering.py``).
+
+Epsilons and clamps (and why)
+-----------------------------
+* ``volume_weights``: ``sigma`` and ``deltas`` are clamped at 0 (negative
+  optical depth is meaningless and would make T > 1). No epsilon: the
+  transmittance is ``exp(-exclusive_cumsum(sigma*delta))`` which is exact for
+  sigma = 0, sigma = 1e8, delta = 0 (near == far) alike.
+* ``weights_from_alpha``: ``1 - alpha`` is clamped to ``>= ALPHA_T_EPS`` (1e-10)
+  before the log, so the log-space cumulative product never sees ``log(0)``
+  (whose gradient is infinite). Effect: after a fully opaque sample the
+  transmittance is 1e-10 instead of 0, i.e. invisible (< 1/2^32 of a colour).
+* ``volsdf_density``: no epsilon. ``beta`` is only required to be > 0; the
+  fields keep it >= ``beta_min``. Both branches of the Laplace CDF are written
+  with ``exp`` of a non-positive argument (``-|d|/beta``) so nothing overflows.
+* ``neus_alpha``: ``NEUS_EPS`` = 1e-5 added to numerator and denominator (as in
+  the NeuS reference code) so the ratio is defined when ``Phi_s(prev) -> 0``
+  (deep inside the surface, where it tends to 1, i.e. opaque, which is harmless
+  because the transmittance is already ~0 there); the result is clamped to
+  [0, 1] because the section-end estimates can make ``prev - next`` negative
+  (ray leaving the surface) and rounding can push the ratio above 1. A
+  zero-length section (``delta == 0``) is defined as transparent (alpha = 0),
+  otherwise the eps would make it opaque inside the surface.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+ALPHA_T_EPS = 1e-10
+NEUS_EPS = 1e-5
+
+__all__ = [
+    "volume_weights",
+    "weights_from_alpha",
+    "volsdf_density",
+    "neus_alpha",
+    "exclusive_cumsum",
+    "ALPHA_T_EPS",
+    "NEUS_EPS",
+]
+
+
+def exclusive_cumsum(x: Tensor) -> Tensor:
+    """``y_k = sum_{j<k} x_j`` along the last dim (``y_0 = 0``), without the cancellation of ``cumsum(x) - x``."""
+    zeros = torch.zeros_like(x[..., :1])
+    return torch.cat([zeros, torch.cumsum(x[..., :-1], dim=-1)], dim=-1)
+
+
+def volume_weights(sigma: Tensor, deltas: Tensor) -> tuple[Tensor, Tensor]:
+    """NeRF-Art Eq. 1 volume-rendering weights from densities.
+
+    ``w_k = T_k (1 - exp(-sigma_k delta_k))``, ``T_k = exp(-sum_{j<k} sigma_j delta_j)``.
+
+    Args:
+        sigma: [R,K] densities (1/length), clamped at 0.
+        deltas: [R,K] segment lengths (same length unit), clamped at 0.
+
+    Returns:
+        ``(weights [R,K], transmittance [R,K])`` in float32; ``T_0 = 1``.
+
+    Stable (finite values and gradients) for sigma in [0, 1e8], delta = 0 and
+    near == far: the optical depth is accumulated with an exclusive cumsum and
+    exponentiated once (log-space product), and ``1 - exp(-x)`` is ``-expm1(-x)``.
+    """
+    tau = sigma.float().clamp_min(0.0) * deltas.float().clamp_min(0.0)  # optical depth per segment
+    transmittance = torch.exp(-exclusive_cumsum(tau))
+    alpha = -torch.expm1(-tau)
+    return transmittance * alpha, transmittance
+
+
+def weights_from_alpha(alpha: Tensor) -> tuple[Tensor, Tensor]:
+    """Eq. 1 weights from per-sample opacities: ``w_k = T_k alpha_k``, ``T_k = prod_{j<k}(1 - alpha_j)``.
+
+    The exclusive cumulative product is evaluated in log space,
+    ``T = exp(exclusive_cumsum(log(max(1 - alpha, ALPHA_T_EPS))))``: this avoids the
+    division-by-element backward of ``torch.cumprod`` (unbounded gradients when a
+    factor is ~0) and ``log(0)``. The clamp makes T after an opaque sample 1e-10
+    rather than exactly 0 (see module docstring).
+
+    Args:
+        alpha: [R,K] opacities in [0,1] (clamped to [0,1]).
+
+    Returns:
+        ``(weights [R,K], transmittance [R,K])`` in float32.
+    """
+    alpha = alpha.float().clamp(0.0, 1.0)
+    log_one_minus = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
+    transmittance = torch.exp(exclusive_cumsum(log_one_minus))
+    return transmittance * alpha, transmittance
+
+
+def volsdf_density(sdf: Tensor, beta: Tensor | float) -> Tensor:
+    """VolSDF density ``sigma = (1/beta) * Psi_beta(-d)``, Psi_beta the zero-mean Laplace CDF of scale beta.
+
+    ``Psi_beta(s) = 0.5 exp(s/beta)`` for s <= 0 and ``1 - 0.5 exp(-s/beta)`` for s > 0; with
+    ``s = -d``: outside (d >= 0) ``sigma = 0.5 exp(-d/beta)/beta``, inside
+    ``sigma = (1 - 0.5 exp(d/beta))/beta = (0.5 - 0.5 expm1(d/beta))/beta``.
+    Both branches only exponentiate ``-|d|/beta <= 0``, and ``torch.where`` is fed
+    branch-safe inputs so the unused branch cannot produce inf*0 in backward.
+
+    Args:
+        sdf: [...] signed distances (negative inside).
+        beta: scalar or broadcastable tensor > 0 (length unit).
+
+    Returns:
+        sigma [...] float32 in [0, 1/beta]. Finite values and gradients for
+        beta in [1e-6, 10] and |sdf| <= 1e4.
+    """
+    d = sdf.float()
+    beta = torch.as_tensor(beta, dtype=torch.float32, device=d.device)
+    outside = d >= 0
+    d_out = torch.where(outside, d, torch.zeros_like(d))  # >= 0
+    d_in = torch.where(outside, torch.zeros_like(d), d)  # <= 0
+    psi_out = 0.5 * torch.exp(-d_out / beta)
+    psi_in = 0.5 - 0.5 * torch.expm1(d_in / beta)
+    return torch.where(outside, psi_out, psi_in) / beta
+
+
+def neus_alpha(
+    sdf: Tensor,
+    dirs_dot_normals: Tensor,
+    deltas: Tensor,
+    inv_s: Tensor | float,
+    cos_anneal_ratio: float = 1.0,
+) -> Tensor:
+    """NeuS unbiased, occlusion-aware opacity of each section (Wang et al. 2021, Eq. 13).
+
+    The SDF at the section ends is estimated from the midpoint value and the
+    directional derivative: ``sdf_prev/next = sdf -/+ iter_cos * delta / 2`` with
+    ``iter_cos = -(relu(-cos/2 + 1/2)(1 - r) + relu(-cos) r)`` (``r`` = cos-anneal
+    ratio: r < 1 early in training keeps gradients alive for back-facing samples).
+    Then ``alpha = clamp((Phi_s(prev) - Phi_s(next) + eps) / (Phi_s(prev) + eps), 0, 1)``
+    with ``Phi_s(x) = sigmoid(inv_s x)`` (logistic CDF) and eps = ``NEUS_EPS``.
+
+    Args:
+        sdf: [R,K] SDF at the sample midpoints.
+        dirs_dot_normals: [R,K] ``dot(ray dir (unit), grad sdf)`` at the samples.
+        deltas: [R,K] section lengths (same unit as the sdf).
+        inv_s: scalar / broadcastable tensor, the logistic sharpness 1/s.
+        cos_anneal_ratio: r in [0,1].
+
+    Returns:
+        alpha [R,K] float32 in [0,1]. Finite values and gradients for inv_s in
+        [1, 1e5] and |sdf| <= 1e4 (``sigmoid`` saturates instead of overflowing).
+    """
+    sdf = sdf.float()
+    cos = dirs_dot_normals.float()
+    deltas = deltas.float().clamp_min(0.0)
+    inv_s = torch.as_tensor(inv_s, dtype=torch.float32, device=sdf.device)
+    r = float(cos_anneal_ratio)
+    iter_cos = -(F.relu(-cos * 0.5 + 0.5) * (1.0 - r) + F.relu(-cos) * r)
+    next_sdf = sdf + iter_cos * deltas * 0.5
+    prev_sdf = sdf - iter_cos * deltas * 0.5
+    prev_cdf = torch.sigmoid(prev_sdf * inv_s)
+    next_cdf = torch.sigmoid(next_sdf * inv_s)
+    alpha = ((prev_cdf - next_cdf + NEUS_EPS) / (prev_cdf + NEUS_EPS)).clamp(0.0, 1.0)
+    return torch.where(deltas > 0, alpha, torch.zeros_like(alpha))

@@ -1,0 +1,76 @@
+"""Callbacks shared by both stages: atomic checkpoints and a finite-value guard."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import lightning as L
+import torch
+
+from nerfart_plugin.errors import TrainingDivergedError
+from nerfart_plugin.utils.io import atomic_path
+
+log = logging.getLogger(__name__)
+
+LAST = "last.ckpt"
+
+
+class AtomicCheckpoint(L.Callback):
+    """Write ``<dirpath>/last.ckpt`` every ``every_n_steps`` optimizer steps, atomically.
+
+    Lightning's own writer truncates the target before writing it; here the
+    checkpoint goes to a temporary file in the same folder and is renamed over
+    the previous one, so a run killed at any moment (SIGKILL included) leaves
+    the last complete checkpoint readable.
+    """
+
+    def __init__(self, dirpath: str | Path, every_n_steps: int) -> None:
+        self.dirpath = Path(dirpath)
+        self.every_n_steps = max(1, int(every_n_steps))
+        self._last_saved = -1
+
+    def save(self, trainer: L.Trainer) -> Path:
+        path = self.dirpath / LAST
+        with atomic_path(path) as tmp:
+            trainer.save_checkpoint(tmp)
+        self._last_saved = trainer.global_step
+        log.debug("checkpoint at step %d -> %s", trainer.global_step, path)
+        return path
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
+        step = trainer.global_step
+        if step > 0 and step % self.every_n_steps == 0 and step != self._last_saved:
+            self.save(trainer)
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if trainer.global_step != self._last_saved and not trainer.interrupted:
+            self.save(trainer)
+
+
+class FiniteGradientGuard(L.Callback):
+    """Stop with a diagnostic when a gradient becomes NaN/inf (the last good checkpoint is kept)."""
+
+    def on_before_optimizer_step(self, trainer: L.Trainer, pl_module: L.LightningModule, optimizer: Any) -> None:
+        check_finite_grads(pl_module, trainer.global_step)
+
+
+def check_finite_grads(module: torch.nn.Module, step: int) -> None:
+    """Raise TrainingDivergedError naming the parameters whose gradient is not finite."""
+    bad = [n for n, p in module.named_parameters() if p.grad is not None and not torch.isfinite(p.grad).all()]
+    if bad:
+        raise TrainingDivergedError(
+            f"non-finite gradient at step {step} in {len(bad)} parameter(s), e.g. {bad[:3]}. The last good "
+            "checkpoint is kept. Try a lower learning rate (reconstruct.lr / stylize.lr) or float32 precision."
+        )
+
+
+def check_finite_losses(terms: dict[str, torch.Tensor], step: int, stage: str) -> None:
+    """Raise TrainingDivergedError naming the loss terms that are not finite."""
+    bad = {k: float(v.detach()) for k, v in terms.items() if not torch.isfinite(v.detach()).all()}
+    if bad:
+        raise TrainingDivergedError(
+            f"{stage}: non-finite loss at step {step}: {bad}. The last good checkpoint is kept; lower the "
+            f"learning rate or the weight (lambda_*) of the term(s) {sorted(bad)}."
+        )

@@ -1,0 +1,91 @@
+"""Model only what a scene requires: choose field extent, background and sampling from the scene.
+
+Every choice is logged with its reason and can be overridden from config
+(``render.background_model``, ``render.occupancy.*``, ``render.num_samples``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+from typing import Any, Optional
+
+from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.errors import ConfigError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SceneSetup:
+    """What the renderer needs to know about a scene, decided once before training.
+
+    Attributes:
+        capture: the Scene's capture type.
+        bound: half side of the field box [-bound, bound]^3 (normalized units).
+        background_model: a learned environment map behind the field.
+        background_color: constant colour behind the field (None: no compositing).
+        ndc: rays are NDC-warped (forward-facing captures).
+        occupancy_resolution: cells per side of the occupancy grid (0 = off).
+        num_samples: samples per ray.
+        has_masks: foreground masks are available (mask loss on).
+        reasons: why each choice was made (logged, written to metrics.json).
+    """
+
+    capture: str
+    bound: float
+    background_model: bool
+    background_color: Optional[list[float]]
+    ndc: bool
+    occupancy_resolution: int
+    num_samples: int
+    has_masks: bool
+    reasons: list[str] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSetup:
+    """Pick extent/background/sampling for ``scene`` from its capture type and resolution."""
+    reasons: list[str] = []
+    has_masks = scene.masks is not None
+    bg_opt = render_cfg.get("background_model", "auto")
+    if bg_opt == "auto":
+        background_model = scene.capture == "unbounded" and not has_masks
+        if background_model:
+            reasons.append("unbounded capture without masks: learned environment map behind the unit sphere")
+        elif scene.capture == "forward_facing":
+            reasons.append("forward-facing capture: NDC space reaches infinity, no background model")
+        else:
+            reasons.append(f"{scene.capture} capture with masks: constant background colour, no background model")
+    elif isinstance(bg_opt, bool):
+        background_model = bg_opt
+        reasons.append(f"background model {'on' if bg_opt else 'off'} by render.background_model")
+    else:
+        raise ConfigError(f"render.background_model must be auto, true or false, not {bg_opt!r}.")
+
+    background_color = render_cfg.get("background_color", [1.0, 1.0, 1.0])
+    if ndc or background_model:
+        background_color = None
+    bound = 1.0
+    reasons.append("field box [-1,1]^3: " + ("NDC cube" if ndc else "unit sphere of the normalized scene"))
+
+    occ = dict(render_cfg.get("occupancy") or {})
+    occ_res = int(occ.get("resolution", 64)) if occ.get("enabled", True) else 0
+    if occ_res:
+        # No point resolving the grid finer than what a pixel footprint can resolve.
+        pixel_limited = max(16, min(occ_res, 2 ** (max(scene.height, scene.width) - 1).bit_length() // 2))
+        if pixel_limited < occ_res:
+            reasons.append(f"occupancy grid {pixel_limited}^3 (image {scene.width}x{scene.height} cannot resolve {occ_res}^3)")
+            occ_res = pixel_limited
+        else:
+            reasons.append(f"occupancy grid {occ_res}^3 for empty-space skipping")
+    else:
+        reasons.append("occupancy grid off (render.occupancy.enabled=false): uniform stratified sampling")
+    num_samples = int(render_cfg.get("num_samples", 64))
+    setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,
+                       has_masks, reasons)
+    for r in reasons:
+        log.info("scene setup: %s", r)
+    return setup

@@ -1,0 +1,168 @@
+"""CLIP guidance: random tiny model (shapes, gradients, caching) and the missing-weights error."""
+
+from __future__ import annotations
+
+import logging
+import socket
+
+import pytest
+import torch
+
+from nerfart_plugin.errors import ConfigError, WeightsMissingError
+from nerfart_plugin.guidance import CLIPGuidance, build_guidance
+from nerfart_plugin.guidance import weights as wts
+from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
+
+TINY_CFG = {
+    "name": "clip",
+    "allow_random_weights": True,
+    "clip": {"model": "ViT-B-32", "pretrained": None, "model_overrides": TINY_TEST_OVERRIDES},
+}
+
+
+@pytest.fixture(scope="module")
+def tiny_clip() -> CLIPGuidance:
+    g = build_guidance(TINY_CFG)
+    assert isinstance(g, CLIPGuidance)
+    return g
+
+
+@pytest.fixture
+def no_network(monkeypatch: pytest.MonkeyPatch):
+    """Downloads disabled; any attempt to open a socket or call the HF hub fails the test
+    (recorded and asserted at teardown, so attempts from helper threads count too)."""
+    monkeypatch.delenv(wts.ALLOW_DOWNLOAD_ENV, raising=False)
+    attempts: list[tuple] = []
+
+    def boom(*a, **k):
+        attempts.append(a)
+        raise OSError("network disabled in this test")
+
+    monkeypatch.setattr(socket, "create_connection", boom)
+    import huggingface_hub
+    import open_clip.pretrained
+
+    monkeypatch.setattr(huggingface_hub, "hf_hub_download", boom)
+    monkeypatch.setattr(open_clip.pretrained, "hf_hub_download", boom)
+    yield
+    assert not attempts, f"network access attempted although downloads are disabled: {attempts}"
+
+
+def test_random_clip_embeddings_and_gradients(tiny_clip: CLIPGuidance) -> None:
+    assert tiny_clip.is_real is False
+    assert tiny_clip.input_size == 32 and tiny_clip.embed_dim == 32
+    assert all(not p.requires_grad for p in tiny_clip.parameters())
+    assert not tiny_clip.net.training
+    img = torch.rand(2, 3, 40, 56, requires_grad=True)  # non-square, not the input size
+    emb = tiny_clip.encode_image(img)
+    assert emb.shape == (2, 32)
+    assert torch.isfinite(emb).all() and (emb.norm(dim=-1) > 1e-6).all()
+    emb.sum().backward()
+    assert img.grad is not None and torch.isfinite(img.grad).all() and img.grad.abs().sum() > 0
+
+
+def test_clip_shortest_resize_mode() -> None:
+    g = build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "resize_mode": "shortest"}})
+    assert g.preprocess(torch.rand(1, 3, 40, 64)).shape == (1, 3, 32, 32)
+
+
+def test_text_encoding_cached_and_truncation_warned(tiny_clip: CLIPGuidance, caplog: pytest.LogCaptureFixture) -> None:
+    calls: list[list[str]] = []
+    orig = tiny_clip._encode_texts
+
+    def spy(texts):
+        calls.append(list(texts))
+        return orig(texts)
+
+    tiny_clip._encode_texts = spy  # type: ignore[method-assign]
+    try:
+        t = tiny_clip.encode_text(["a photo", "Vincent van Gogh", "a photo"])
+        assert t.shape == (3, 32) and not t.requires_grad
+        assert torch.equal(t[0], t[2])
+        t2 = tiny_clip.encode_text(["Vincent van Gogh"])
+        assert torch.equal(t2[0], t[1])
+        assert calls == [["a photo", "Vincent van Gogh"]]
+        with caplog.at_level(logging.WARNING):
+            long = tiny_clip.encode_text(["very " * 100 + "long prompt"])
+        assert long.shape == (1, 32) and torch.isfinite(long).all()
+        assert "truncated" in caplog.text
+    finally:
+        del tiny_clip._encode_texts
+
+
+def test_real_default_missing_weights_error(no_network, tmp_path) -> None:
+    with pytest.raises(WeightsMissingError) as ei:
+        CLIPGuidance(model="ViT-B-32", pretrained="openai", cache_dir=str(tmp_path))
+    msg = str(ei.value)
+    assert "'ViT-B-32'" in msg and "pretrained='openai'" in msg
+    assert str(tmp_path) in msg  # where it looked
+    assert "open_clip.create_model_and_transforms('ViT-B-32', pretrained='openai'" in msg  # how to get them
+    assert "guidance.clip.pretrained=/path/to/file.pt" in msg
+
+
+def test_real_default_without_cache_dir(no_network) -> None:
+    """The shipped default config on a machine without the weights (skipped if they are cached)."""
+    from open_clip import get_pretrained_cfg
+
+    from nerfart_plugin.guidance.clip import _find_cached
+
+    if _find_cached(get_pretrained_cfg("ViT-B-32", "openai"), None)[0]:
+        pytest.skip("ViT-B-32/openai weights are cached on this machine")
+    with pytest.raises(WeightsMissingError, match="ViT-B-32"):
+        build_guidance({"name": "clip"})
+
+
+def test_download_allowed_but_offline(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    monkeypatch.setattr(wts, "host_reachable", lambda *a, **k: False)
+    with pytest.raises(WeightsMissingError, match="not reachable"):
+        CLIPGuidance(pretrained="openai", cache_dir=str(tmp_path), allow_download=True)
+
+
+def test_missing_local_file_and_bad_tag(no_network, tmp_path) -> None:
+    with pytest.raises(WeightsMissingError, match="nope.pt"):
+        CLIPGuidance(pretrained=str(tmp_path / "nope.pt"))
+    with pytest.raises(ConfigError, match="not-a-tag"):
+        CLIPGuidance(pretrained="not-a-tag")
+    with pytest.raises(ConfigError, match="allow_random_weights"):
+        CLIPGuidance(pretrained=None)
+    with pytest.raises(ConfigError, match="open_clip model"):
+        CLIPGuidance(model="ViT-Nope")
+
+
+def test_random_fallback_when_allowed(no_network, tmp_path) -> None:
+    g = CLIPGuidance(
+        pretrained="openai", cache_dir=str(tmp_path), allow_random_weights=True, model_overrides=TINY_TEST_OVERRIDES
+    )
+    assert g.is_real is False
+
+
+def test_local_checkpoint_file(tiny_clip: CLIPGuidance, tmp_path) -> None:
+    path = tmp_path / "tiny.pt"
+    torch.save(tiny_clip.net.state_dict(), path)
+    g = CLIPGuidance(pretrained=str(path), model_overrides=TINY_TEST_OVERRIDES)
+    assert g.is_real is True
+    img = torch.rand(1, 3, 32, 32)
+    assert torch.allclose(g.encode_image(img), tiny_clip.encode_image(img), atol=1e-5)
+
+
+def test_weights_found_in_hf_cache_layout(no_network, tiny_clip: CLIPGuidance, tmp_path) -> None:
+    """A tag whose file sits in a Hugging Face cache folder is loaded without any network access."""
+    repo = tmp_path / "models--timm--vit_base_patch32_clip_224.openai"
+    snap = repo / "snapshots" / "0123abcd"
+    snap.mkdir(parents=True)
+    (repo / "refs").mkdir()
+    (repo / "refs" / "main").write_text("0123abcd")
+    torch.save(tiny_clip.net.state_dict(), snap / "open_clip_pytorch_model.bin")
+    g = CLIPGuidance(pretrained="openai", cache_dir=str(tmp_path), model_overrides=TINY_TEST_OVERRIDES)
+    assert g.is_real is True
+    assert any(type(m).__name__ == "QuickGELU" for m in g.net.modules())  # OpenAI weights need QuickGELU
+
+
+def test_build_from_omegaconf() -> None:
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create(TINY_CFG)
+    g = build_guidance(cfg)
+    assert isinstance(g, CLIPGuidance) and g.embed_dim == 32
+    with pytest.raises(ConfigError, match="Valid guidance names"):
+        build_guidance({"name": "nope"})

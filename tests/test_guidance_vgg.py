@@ -1,0 +1,81 @@
+"""VGG16 perceptual features (random weights) and the toy edge extractor."""
+
+from __future__ import annotations
+
+import socket
+
+import pytest
+import torch
+
+from nerfart_plugin import losses
+from nerfart_plugin.errors import ConfigError, WeightsMissingError
+from nerfart_plugin.guidance import EdgePerceptual, Perceptual, build_perceptual
+from nerfart_plugin.guidance import weights as wts
+
+
+def test_vgg_random_feature_shapes_and_truncation() -> None:
+    p = build_perceptual({"name": "clip", "allow_random_weights": True, "vgg": {"weights": None}})
+    assert isinstance(p, Perceptual) and p.is_real is False
+    assert p.layers == ["relu1_2", "relu2_2", "relu3_3", "relu4_3"]
+    assert len(p.features_net) == 23  # truncated after relu4_3
+    img = torch.rand(2, 3, 32, 48, requires_grad=True)
+    feats = p.features(img)
+    assert [tuple(f.shape) for f in feats] == [(2, 64, 32, 48), (2, 128, 16, 24), (2, 256, 8, 12), (2, 512, 4, 6)]
+    losses.perceptual_loss(feats, [f.detach() * 0 for f in feats]).backward()
+    assert torch.isfinite(img.grad).all() and img.grad.abs().sum() > 0
+    assert all(not q.requires_grad for q in p.parameters())
+
+
+def test_vgg_custom_layers() -> None:
+    p = Perceptual(weights=None, layers=["relu1_1", "relu2_1"], allow_random_weights=True)
+    assert len(p.features_net) == 7
+    assert [f.shape[1] for f in p.features(torch.rand(1, 3, 16, 16))] == [64, 128]
+    with pytest.raises(ConfigError, match="relu9_9"):
+        Perceptual(weights=None, layers=["relu9_9"], allow_random_weights=True)
+
+
+def test_vgg_missing_weights(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
+    monkeypatch.delenv(wts.ALLOW_DOWNLOAD_ENV, raising=False)
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path))  # empty hub cache
+
+    attempts: list[tuple] = []
+
+    def boom(*a, **k):
+        attempts.append(a)
+        raise OSError("network disabled in this test")
+
+    monkeypatch.setattr(socket, "create_connection", boom)
+    with pytest.raises(WeightsMissingError) as ei:
+        Perceptual()
+    msg = str(ei.value)
+    assert "vgg16-397923af.pth" in msg and str(tmp_path) in msg and "guidance.vgg.weights=" in msg
+    with pytest.raises(WeightsMissingError, match="missing.pth"):
+        Perceptual(weights=str(tmp_path / "missing.pth"))
+    with pytest.raises(ConfigError):
+        Perceptual(weights=None)
+    assert not attempts
+
+
+def test_vgg_local_file(tmp_path) -> None:
+    from torchvision.models.vgg import cfgs, make_layers
+
+    torch.manual_seed(0)
+    net = torch.nn.Module()
+    net.features = make_layers(cfgs["D"])  # same keys as vgg16().state_dict() for the trunk
+    path = tmp_path / "vgg.pth"
+    torch.save(net.state_dict(), path)
+    p = Perceptual(weights=str(path), layers=["relu1_2"])
+    assert p.is_real is True
+    x = torch.rand(1, 3, 8, 8)
+    ref = torch.relu(net.features[2](torch.relu(net.features[0](p.normalize(x)))))
+    assert torch.allclose(p.features(x)[0], ref, atol=1e-5)
+
+
+def test_edge_perceptual_for_toy() -> None:
+    p = build_perceptual({"name": "toy"})
+    assert isinstance(p, EdgePerceptual) and p.is_real is False
+    img = torch.rand(2, 3, 16, 16, requires_grad=True)
+    feats = p.features(img)
+    assert [tuple(f.shape) for f in feats] == [(2, 3, 16, 16)] * 2 + [(2, 3, 8, 8)] * 2 + [(2, 3, 4, 4)] * 2
+    losses.perceptual_loss(feats, [f.detach() + 1 for f in feats]).backward()
+    assert torch.isfinite(img.grad).all()

@@ -1,0 +1,116 @@
+"""Off-screen PyVista viewer: screenshots and the CLI."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from nerfart_plugin.errors import ConfigError, DataError
+from nerfart_plugin.export.analytic import SphereSDF, TorusSDF, UnionSDF
+from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
+from nerfart_plugin.view import load_mesh, main, render_meshes
+
+REPO = Path(__file__).resolve().parents[1]
+SIZE = (240, 200)
+
+
+@pytest.fixture(scope="module")
+def mesh_files(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("meshes")
+    ex = MeshExtractor(resolution=40, show_progress=False)
+    return {
+        "sphere": export_mesh(ex.extract(SphereSDF(0.5)), d / "sphere.ply"),
+        "torus": export_mesh(ex.extract(TorusSDF()), d / "torus.glb"),
+        "bumpy": export_mesh(ex.extract(UnionSDF(SphereSDF(0.45), SphereSDF(0.2, (0.4, 0, 0)))), d / "bumpy.obj"),
+    }
+
+
+def test_one_mesh_screenshot_not_blank_and_differs(tmp_path, mesh_files):
+    a = render_meshes([mesh_files["sphere"]], screenshot=tmp_path / "a.png", window_size=SIZE)
+    b = render_meshes([mesh_files["torus"]], screenshot=tmp_path / "b.png", window_size=SIZE)
+    img = iio.imread(tmp_path / "a.png")
+    assert img.shape[:2] == (SIZE[1], SIZE[0]) and np.array_equal(img[..., :3], a)
+    assert a.std() > 10 and b.std() > 10
+    assert np.abs(a.astype(float) - b.astype(float)).mean() > 5
+    # Vertex colours are shown: many distinct hues, not one flat material colour.
+    assert len(np.unique(a.reshape(-1, 3) // 16, axis=0)) > 20
+
+
+def test_two_meshes_side_by_side(tmp_path, mesh_files):
+    two = render_meshes([mesh_files["sphere"], mesh_files["bumpy"]], screenshot=tmp_path / "two.png", window_size=SIZE)
+    same = render_meshes(
+        [mesh_files["sphere"], mesh_files["sphere"]], screenshot=tmp_path / "same.png", window_size=SIZE
+    )
+    assert two.shape[:2] == (SIZE[1], SIZE[0]) and two.std() > 10
+    assert np.abs(two.astype(float) - same.astype(float)).mean() > 2
+    # Displacement colormap on the right: the bump (outward) is red, the shrunken body blue.
+    right = two[:, SIZE[0] // 2 :].reshape(-1, 3).astype(int)
+    assert ((right[:, 0] - right[:, 2]) > 60).sum() > 30 and ((right[:, 2] - right[:, 0]) > 60).sum() > 30
+
+
+def test_errors_name_the_file(tmp_path):
+    with pytest.raises(DataError, match="missing.ply"):
+        load_mesh(tmp_path / "missing.ply")
+    bad = tmp_path / "bad.ply"
+    bad.write_text("not a mesh")
+    with pytest.raises(DataError, match="bad.ply"):
+        load_mesh(bad)
+    with pytest.raises(ConfigError, match="two meshes"):
+        render_meshes([tmp_path / "x.ply"], scalars="displacement")
+    assert main([str(tmp_path / "missing.ply"), "--screenshot", str(tmp_path / "o.png")]) == 2
+
+
+def test_cli_subprocess(tmp_path, mesh_files):
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    out = tmp_path / "cli.png"
+    cmd = [
+        sys.executable,
+        "-m",
+        "nerfart_plugin.view",
+        str(mesh_files["sphere"]),
+        str(mesh_files["torus"]),
+        "--screenshot",
+        str(out),
+        "--window-size",
+        "200",
+        "120",
+        "--scalars",
+        "rgb",
+    ]
+    res = subprocess.run(cmd, cwd=tmp_path, env=env, check=False, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    img = iio.imread(out)
+    assert img.shape[:2] == (120, 200) and img.std() > 10
+    help_ = subprocess.run(
+        [sys.executable, "-m", "nerfart_plugin.view", "--help"],
+        cwd=tmp_path,
+        env=env,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert help_.returncode == 0 and "--screenshot" in help_.stdout
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "nerfart_plugin.view",
+            str(tmp_path / "nope.ply"),
+            "--screenshot",
+            str(tmp_path / "x.png"),
+        ],
+        cwd=tmp_path,
+        env=env,
+        check=False,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert bad.returncode == 2 and "nope.ply" in bad.stderr
