@@ -79,10 +79,26 @@ def extract_frames(
             if not container.streams.video:
                 raise DataError(f"{video} has no video stream: give a video file or a folder of frames.")
             stream = container.streams.video[0]
+            duration = None
+            if stream.duration is not None and stream.time_base is not None:
+                duration = float(stream.duration * stream.time_base)
+            elif container.duration:
+                duration = container.duration / 1e6
+            targets = None
+            if duration and duration > 0:  # choose the sample times first: convert only kept frames
+                targets = np.arange(0.0, duration, 1.0 / fps)
+                if len(targets) > max_frames:
+                    targets = targets[np.unique(np.round(np.linspace(0, len(targets) - 1, max_frames)).astype(int))]
+                targets = list(targets)
             next_t = 0.0
             for frame in container.decode(stream):
                 t = float(frame.time) if frame.time is not None else len(kept) / fps
-                if t + 1e-6 < next_t:
+                if targets is not None:
+                    if not targets or t + 1e-3 < targets[0]:
+                        continue
+                    while targets and targets[0] <= t + 1e-3:
+                        targets.pop(0)
+                elif t + 1e-6 < next_t:
                     continue
                 img = frame.to_image()
                 if long_side:
