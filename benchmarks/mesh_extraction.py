@@ -19,34 +19,20 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
-import os
-import platform
-import re
 import sys
 import time
 from pathlib import Path
 
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout without installing the package
 
+from benchmarks import common
 from nerfart_plugin.export.analytic import SphereSDF, TorusSDF, chamfer_to_analytic
 from nerfart_plugin.export.mesh import MeshExtractor
-from nerfart_plugin.utils.io import atomic_write_text
 
 log = logging.getLogger("mesh_extraction")
-START, END = "<!-- mesh_extraction:start -->", "<!-- mesh_extraction:end -->"
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
+NAME = "mesh_extraction"
+START, END = common.markers(NAME)
 
 
 def run(resolutions: list[int], n_samples: int) -> list[dict]:
@@ -74,18 +60,14 @@ def run(resolutions: list[int], n_samples: int) -> list[dict]:
     return rows
 
 
-def table(rows: list[dict], argv: list[str], n_samples: int, total: float) -> str:
+def table(rows: list[dict], argv: list[str], n_samples: int, info: dict) -> str:
     cmd = " ".join(["python benchmarks/mesh_extraction.py", *argv])
     lines = [
         START,
         "## Mesh extraction accuracy (marching cubes on analytic SDFs)",
         "",
         f"Command (from the repo root): `{cmd}`  ",
-        (
-            f"Machine: {os.cpu_count()} CPUs (nproc), {cpu_model()}; torch {torch.__version__}, "
-            f"{torch.get_num_threads()} torch threads; Python {platform.python_version()}; total {total:.0f} s. "
-            "Shared machine: timings are noisy."
-        ),
+        common.machine_line(info),
         "",
         (
             f"Grid over [-1,1]^3, cell = 2/(res-1). Distances in world units, {n_samples} samples per direction. "
@@ -111,13 +93,7 @@ def table(rows: list[dict], argv: list[str], n_samples: int, total: float) -> st
 
 def write_section(path: Path, section: str) -> None:
     """Replace (or append) our marked section of ``path``, keeping everything else."""
-    text = path.read_text() if path.exists() else "# Benchmarks\n"
-    pattern = re.compile(re.escape(START) + r".*?" + re.escape(END), re.DOTALL)
-    if pattern.search(text):
-        text = pattern.sub(lambda _m: section, text)
-    else:
-        text = text.rstrip("\n") + "\n\n" + section + "\n"
-    atomic_write_text(path, text)
+    common.write_section(path, NAME, section)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -129,12 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-write", action="store_true", help="print the table only")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    t0 = time.perf_counter()
+    info = common.machine_info()
     rows = run(sorted(args.resolutions), args.samples)
     cmd_args = ["--resolutions", *map(str, args.resolutions)]
     if args.samples != 100_000:
         cmd_args += ["--samples", str(args.samples)]
-    section = table(rows, cmd_args, args.samples, time.perf_counter() - t0)
+    section = table(rows, cmd_args, args.samples, info)
     print(section)
     for shape in {r["shape"] for r in rows}:
         ch = [r["chamfer"] for r in rows if r["shape"] == shape]

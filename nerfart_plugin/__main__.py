@@ -20,6 +20,7 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
+from typing import Optional
 
 import hydra
 from omegaconf import DictConfig
@@ -41,24 +42,37 @@ def normalize_overrides(argv: list[str], known: set[str]) -> list[str]:
 
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
-def _app(cfg: DictConfig) -> None:
+def _app(cfg: DictConfig) -> Optional[float]:
+    """Run the pipeline; return the sweep objective (see :func:`nerfart_plugin.sweep.objective`).
+
+    Hydra ignores the return value of a plain run; a sweeper such as Optuna
+    (``hydra/sweeper=lambdas_optuna``) maximizes it. ``None`` (a failed job, or a
+    stage without a metric such as ``stage=export``) counts as a failed trial.
+    """
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
+    from omegaconf import OmegaConf
 
-    from nerfart_plugin.errors import NerfArtError
+    from nerfart_plugin.errors import ConfigError, NerfArtError
     from nerfart_plugin.pipeline import run
+    from nerfart_plugin.sweep import objective
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
-        run(cfg)
+        results = run(cfg)
     except NerfArtError as exc:
         # The project's own errors already say what is wrong and how to fix it: no traceback.
         logging.getLogger("nerfart_plugin").error("%s: %s", type(exc).__name__, exc)
         hc = HydraConfig.get()
         if hc.mode == RunMode.MULTIRUN:  # keep the sweep going; the summary shows the failure
             atomic_write_json(Path(hc.runtime.output_dir) / "result.json", {"error": f"{type(exc).__name__}: {exc}"})
-            return
+            return None
         sys.exit(2)
+    try:
+        return objective(results, OmegaConf.select(cfg, "objective", default="auto"))
+    except ConfigError as exc:
+        logging.getLogger("nerfart_plugin").debug("no sweep objective: %s", exc)
+        return None
 
 
 def main() -> None:

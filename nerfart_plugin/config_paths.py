@@ -19,6 +19,11 @@ def config_dir() -> Path:
     checkout = Path(__file__).resolve().parents[1] / "conf"
     if (checkout / "config.yaml").is_file():
         return checkout
+    # a wheel installs conf/ as nerfart_plugin/conf (a namespace package without
+    # __init__.py, for which importlib.resources.files() returns a MultiplexedPath)
+    installed = Path(__file__).resolve().parent / "conf"
+    if (installed / "config.yaml").is_file():
+        return installed
     try:
         from importlib.resources import files
 

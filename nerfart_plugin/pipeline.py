@@ -171,6 +171,7 @@ class Pipeline:
         final = run_dir / "final.ckpt"
         if final.exists():
             log.info("reusing the cached reconstruction %s (same data, backbone and settings)", run_dir)
+            self.results["reconstruction"] = {"dir": str(run_dir)}  # metrics: run_dir/metrics.json
             return final
         _prepare_dir(run_dir, self.resume)
         atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(self.c)))
@@ -302,6 +303,9 @@ class Pipeline:
         src = torch.stack([system.render_batch(v, source=True)["rgb"].permute(2, 0, 1) for v in eval_views])
         metrics: dict[str, Any] = clip_scores(system.guidance, sty.clamp(0, 1), src.clamp(0, 1), self.prompt,
                                               system.source_prompt)
+        metrics["mean_rgb"] = [float(x) for x in sty.clamp(0, 1).mean((0, 2, 3))]
+        metrics["mean_rgb_source"] = [float(x) for x in src.clamp(0, 1).mean((0, 2, 3))]
+        metrics["edge_similarity"] = edge_similarity(sty.clamp(0, 1), src.clamp(0, 1))
         # camera-path video, source | stylized, and view consistency along it
         n = int(sc.get("video_frames", 24))
         c2ws = orbit_path(self.scene, n)
@@ -394,6 +398,15 @@ class Pipeline:
                                    "stage=reconstruct (or stage=all) first, or pass source_checkpoint=/path/final.ckpt.")
             self.stylize(recon)
         return self.results
+
+
+def edge_similarity(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Cosine similarity of Sobel edge magnitudes of two image batches [B,3,H,W] (1 = same structure)."""
+    import kornia
+
+    ea = kornia.filters.sobel(kornia.color.rgb_to_grayscale(a)).flatten(1)
+    eb = kornia.filters.sobel(kornia.color.rgb_to_grayscale(b)).flatten(1)
+    return float(torch.nn.functional.cosine_similarity(ea, eb, dim=1).mean())
 
 
 def run(cfg: DictConfig | dict) -> dict[str, Any]:

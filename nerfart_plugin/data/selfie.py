@@ -91,8 +91,10 @@ def extract_frames(
                     targets = targets[np.unique(np.round(np.linspace(0, len(targets) - 1, max_frames)).astype(int))]
                 targets = list(targets)
             next_t = 0.0
+            last = None
             for frame in container.decode(stream):
                 t = float(frame.time) if frame.time is not None else len(kept) / fps
+                last = (t, frame)
                 if targets is not None:
                     if not targets or t + 1e-3 < targets[0]:
                         continue
@@ -104,7 +106,13 @@ def extract_frames(
                 if long_side:
                     img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
                 kept.append((t, img))
+                last = None
                 next_t = t + 1.0 / fps - 0.5 / 1000.0
+            if targets and last is not None:  # header duration beyond the last frame (VFR phone videos)
+                img = last[1].to_image()
+                if long_side:
+                    img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
+                kept.append((last[0], img))
     except DataError:
         raise
     except Exception as e:  # av.error.* and friends

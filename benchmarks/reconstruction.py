@@ -1,0 +1,361 @@
+"""Held-out PSNR versus wall time for each backbone, on the default head scene and on fern.
+
+For each backbone (nerf, volsdf, neus) x scene:
+
+* ``head``: the shipped head scene (``data=h3ds``, ``data.path`` unset) at
+  ``data.resolution=128``, budget 600 s; metric: PSNR inside the mattes
+  (``psnr_masked``), full-image PSNR and SSIM reported too;
+* ``fern``: LLFF fern (``data=llff data.path=../shared/data/llff_fern data.factor=8``,
+  504x378, NDC), budget 900 s; metric: PSNR.
+
+Training is the project's :class:`~nerfart_plugin.systems.reconstruction.ReconstructionSystem`
+driven by a Lightning ``Trainer`` on the Hydra-composed config (default preset
+``balanced``), with a callback that stops at the time budget and, at
+``--checkpoints`` evenly spaced moments of *training* time, renders held-out
+views and records (training seconds, step, PSNR, masked PSNR, SSIM). Evaluation
+time is excluded from the training clock. The LR decay and NeuS variance
+anneal, which the system schedules over ``reconstruct.steps``, are scheduled
+over the number of steps expected to fit in the budget (re-estimated from the
+measured step rate at each checkpoint); ``--fixed-schedule`` keeps ``reconstruct.steps``.
+
+Writes its section of BENCHMARKS.md (``<!-- reconstruction:start/end -->``) and
+``benchmarks/figures/reconstruction.png``.
+
+    python benchmarks/reconstruction.py                       # full: ~80-120 min on 2 CPU cores
+    python benchmarks/reconstruction.py --quick               # smoke run (< 2 min), scratch output
+    python benchmarks/reconstruction.py --scenes head --backbones neus volsdf
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import common  # noqa: E402
+
+log = logging.getLogger("bench.reconstruction")
+NAME = "reconstruction"
+BACKBONES = ("nerf", "volsdf", "neus")
+
+
+def scene_specs() -> dict[str, dict[str, Any]]:
+    fern = common.shared_data() / "llff_fern"
+    return {
+        "head": {"overrides": ["data=h3ds", "data.resolution=128"], "budget": 600.0, "metric": "psnr_masked",
+                 "target": 25.0, "label": "head (shipped h3ds scene, 128 px)",
+                 "quick": ["data.resolution=32"]},
+        "fern": {"overrides": ["data=llff", f"data.path={fern}", "data.factor=8"], "budget": 900.0,
+                 "metric": "psnr", "target": 22.0, "label": "fern (LLFF images_8, 504x378, NDC)",
+                 "quick": ["data.resolution=48"]},
+    }
+
+
+QUICK_OVERRIDES = ["render.num_samples=16", "reconstruct.batch_rays=256", "render.occupancy.resolution=16",
+                   "render.occupancy.warmup_steps=8", "render.occupancy.update_every=4"]
+
+
+# --------------------------------------------------------------------------- the budget callback
+def _budget_callback(budget: float, checkpoints: list[float], evaluate, stretch_schedule: bool):
+    import lightning as L
+
+    class BudgetEval(L.Callback):
+        """Stops at ``budget`` seconds of training; evaluates at the ``checkpoints`` (training seconds)."""
+
+        def __init__(self) -> None:
+            self.records: list[dict[str, Any]] = []
+            self.eval_seconds = 0.0
+            self.pending = sorted(checkpoints)
+            self.t0: Optional[float] = None
+
+        def train_seconds(self) -> float:
+            return time.perf_counter() - self.t0 - self.eval_seconds
+
+        def on_train_start(self, trainer, pl_module) -> None:
+            self.t0 = time.perf_counter()
+
+        def _reschedule(self, trainer, pl_module, t: float) -> None:
+            step = max(1, trainer.global_step)
+            total = max(step + 1, int(step + (budget - t) * step / max(t, 1e-9)))
+            pl_module.total_steps = total
+            for cfg in trainer.lr_scheduler_configs:
+                sched = cfg.scheduler
+                if hasattr(sched, "lr_lambdas"):
+                    sched.lr_lambdas = [lambda s, T=total: 0.1 ** min(s / T, 1.0)] * len(sched.lr_lambdas)
+
+        def on_train_batch_end(self, trainer, pl_module, *args: Any) -> None:
+            t = self.train_seconds()
+            step = trainer.global_step
+            if stretch_schedule and step == 20:
+                self._reschedule(trainer, pl_module, t)
+            done = t >= budget
+            if (self.pending and t >= self.pending[0]) or done:
+                while self.pending and self.pending[0] <= t:
+                    self.pending.pop(0)
+                e0 = time.perf_counter()
+                metrics = evaluate(pl_module, final=done)
+                pl_module.train()
+                self.eval_seconds += time.perf_counter() - e0
+                self.records.append({"time": t, "step": step, "eval_seconds": time.perf_counter() - e0, **metrics})
+                log.info("  t=%6.1f s step %5d: %s", t, step,
+                         ", ".join(f"{k} {v:.3f}" for k, v in metrics.items() if isinstance(v, float)))
+                if stretch_schedule and not done:
+                    self._reschedule(trainer, pl_module, t)
+            if done:
+                trainer.should_stop = True
+
+    return BudgetEval()
+
+
+# --------------------------------------------------------------------------- one run
+def load_scene(overrides: list[str]):
+    """A Pipeline with the scene loaded and its training rays precomputed (shared by all backbones)."""
+    from nerfart_plugin.pipeline import Pipeline
+
+    p = Pipeline(common.compose(["stage=reconstruct", *overrides]))
+    p.load_data()
+    p.dm.setup("fit")
+    return p
+
+
+def train_one(p, overrides: list[str], budget: float, checkpoints: list[float], eval_views: int,
+              stretch_schedule: bool) -> dict[str, Any]:
+    """Train one backbone on the loaded scene of ``p`` for ``budget`` s; returns records + final metrics."""
+    import lightning as L
+    import torch
+
+    from nerfart_plugin.systems.base import steps_loader
+    from nerfart_plugin.systems.reconstruction import ReconstructionSystem, view_metrics
+
+    c = common.compose(["stage=reconstruct", *overrides])
+    L.seed_everything(int(c["seed"]), verbose=False)
+    system = ReconstructionSystem(c["reconstruct"], c["backbone"], c["encoding"], c["render"], p.setup,
+                                  train_rays=p.dm.train_rays, seed=int(c["seed"]))
+    views = [p.dm.view_batch(i) for i in (p.scene.val_ids or p.scene.train_ids[:1])]
+    chunk = int(c["render"]["chunk"])
+
+    @torch.no_grad()
+    def evaluate(module, final: bool) -> dict[str, float]:
+        module.eval()
+        use = views if final or eval_views <= 0 else views[:eval_views]
+        per = []
+        for b in use:
+            img = module.render_view(b, chunk=chunk)
+            per.append(view_metrics(img["rgb"], b["rgb"].reshape(img["rgb"].shape).to(img["rgb"].device),
+                                    b.get("mask")))
+        keys = sorted(set().union(*per))
+        out = {k: float(sum(m[k] for m in per if k in m) / sum(1 for m in per if k in m)) for k in keys}
+        out["views"] = len(use)
+        return out
+
+    cb = _budget_callback(budget, checkpoints, evaluate, stretch_schedule)
+    device = p.device
+    accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
+    devices = [device.index] if device.type == "cuda" and device.index is not None else 1
+    trainer = L.Trainer(max_steps=10**9, accelerator=accelerator, devices=devices,
+                        precision=c["trainer"]["precision"], logger=False, callbacks=[cb],
+                        enable_checkpointing=False, enable_model_summary=False, enable_progress_bar=False,
+                        num_sanity_val_steps=0, limit_val_batches=0)
+    w0 = time.perf_counter()
+    trainer.fit(system, train_dataloaders=steps_loader())
+    wall = time.perf_counter() - w0
+    final = cb.records[-1] if cb.records else {}
+    return {"records": cb.records, "final": final, "steps": int(trainer.global_step),
+            "train_seconds": final.get("time", float("nan")), "eval_seconds": cb.eval_seconds, "wall_seconds": wall,
+            "sec_per_step": final.get("time", float("nan")) / max(1, int(trainer.global_step)),
+            "views": len(views)}
+
+
+# --------------------------------------------------------------------------- report
+def first_reaching(records: list[dict], metric: str, target: float) -> Optional[float]:
+    for r in records:
+        if r.get(metric, -math.inf) >= target:
+            return float(r["time"])
+    return None
+
+
+def verdicts(results: dict, specs: dict, scale: float, quick: bool) -> list[str]:
+    lines = ["**Targets**" + (" (not judged: quick run / scaled budget)" if quick or scale != 1.0 else "") + ":", ""]
+    head, fern = results.get("head"), results.get("fern")
+    if head is not None:
+        s = specs["head"]
+        for bb in ("neus", "volsdf"):
+            r = head.get(bb)
+            if r is None or "error" in r:
+                lines.append(f"- head, {bb}: not measured" + (f" ({r['error']})" if r else "") + ".")
+                continue
+            v = r["final"].get(s["metric"], float("nan"))
+            t = first_reaching(r["records"], s["metric"], s["target"])
+            ok = v >= s["target"] or t is not None
+            lines.append(f"- head >= {s['target']:.0f} dB masked PSNR within {s['budget'] * scale:.0f} s, {bb}: "
+                         f"**{'MET' if ok else 'NOT MET'}** (masked PSNR {v:.2f} dB at {r['train_seconds']:.0f} s"
+                         + (f", first >= target at {t:.0f} s" if t is not None else "") + ").")
+    if fern is not None:
+        s = specs["fern"]
+        ok_runs = {bb: r for bb, r in fern.items() if "error" not in r}
+        if not ok_runs:
+            lines.append("- fern: not measured.")
+        else:
+            best = max(ok_runs, key=lambda b: ok_runs[b]["final"].get("psnr", -1))
+            fastest = min(ok_runs, key=lambda b: ok_runs[b]["sec_per_step"])
+            reach = {bb: first_reaching(r["records"], "psnr", s["target"]) for bb, r in ok_runs.items()}
+            reached = {bb: t for bb, t in reach.items() if t is not None}
+            if reached:
+                bb = min(reached, key=reached.get)
+                lines.append(f"- fern >= {s['target']:.0f} dB PSNR within {s['budget'] * scale:.0f} s: **MET** by {bb} "
+                             f"(first at {reached[bb]:.0f} s of training).")
+            else:
+                lines.append(f"- fern >= {s['target']:.0f} dB PSNR within {s['budget'] * scale:.0f} s: **NOT MET** "
+                             f"by any backbone (best: {best}, {ok_runs[best]['final'].get('psnr', float('nan')):.2f} dB).")
+            lines.append(f"  Fastest backbone per step on fern: {fastest} "
+                         f"({ok_runs[fastest]['sec_per_step']:.2f} s/step); highest PSNR: {best}.")
+    return lines
+
+
+def plot(results: dict, specs: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = [s for s in specs if s in results]
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5.5 * len(scenes), 4), squeeze=False)
+    for ax, scene in zip(axes[0], scenes):
+        s = specs[scene]
+        for bb, r in results[scene].items():
+            if "error" in r or not r["records"]:
+                continue
+            xs = [0.0] + [x["time"] for x in r["records"]]
+            ys = [float("nan")] + [x.get(s["metric"], float("nan")) for x in r["records"]]
+            ax.plot(xs[1:], ys[1:], marker="o", label=bb)
+        ax.axhline(s["target"], color="gray", ls="--", lw=1, label=f"target {s['target']:.0f} dB")
+        ax.set_xlabel("training wall time (s, evaluation excluded)")
+        ax.set_ylabel("held-out " + ("masked PSNR" if s["metric"] == "psnr_masked" else "PSNR") + " (dB)")
+        ax.set_title(s["label"])
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str], info: dict, fig: Optional[Path],
+           out: Path, extra: list[str]) -> str:
+    body = [
+        "Held-out PSNR versus training wall time, one backbone at a time, default config (preset balanced: grid "
+        "encoding, 64 samples/ray, occupancy grid, 1024 rays/step" + (", plus " + " ".join(extra) if extra else "")
+        + "). Time is training only: the held-out evaluations at the checkpoints are excluded. "
+        f"Intermediate checkpoints render {'all' if args.eval_views <= 0 else args.eval_views} held-out view(s); "
+        "the final row renders all held-out views. The LR decay / NeuS anneal are scheduled over the steps "
+        "expected to fit in the budget" + (" (disabled: --fixed-schedule)" if args.fixed_schedule else "") + ".",
+        "",
+    ]
+    rows = []
+    for scene, per in results.items():
+        for bb, r in per.items():
+            if "error" in r:
+                rows.append([scene, bb, "error: " + r["error"][:80], "", "", "", "", "", "", ""])
+                continue
+            f = r["final"]
+            t_hit = first_reaching(r["records"], specs[scene]["metric"], specs[scene]["target"])
+            rows.append([scene, bb, common.fmt(r["train_seconds"], ".0f"), r["steps"],
+                         common.fmt(r["sec_per_step"], ".2f"), common.fmt(f.get("psnr")),
+                         common.fmt(f.get("psnr_masked")), common.fmt(f.get("ssim"), ".3f"),
+                         common.fmt(t_hit, ".0f", none="not reached"), common.fmt(r["eval_seconds"], ".0f")])
+    body += common.md_table(["scene", "backbone", "train time (s)", "steps", "s/step", "PSNR (dB)",
+                             "masked PSNR (dB)", "SSIM", f"reaches target at (s)", "eval time (s)"], rows,
+                            "ll" + "r" * 8)
+    body += ["", "Target metric per scene: head = masked PSNR >= 25 dB, fern = PSNR >= 22 dB.", ""]
+    body += verdicts(results, specs, args.budget_scale, args.quick)
+    body += ["", "Curves (training seconds: metric):", ""]
+    for scene, per in results.items():
+        m = specs[scene]["metric"]
+        for bb, r in per.items():
+            if "error" not in r:
+                pts = ", ".join(f"{x['time']:.0f}: {x.get(m, float('nan')):.2f}" for x in r["records"])
+                body.append(f"- {scene} / {bb} ({m}): {pts}")
+    if fig is not None:
+        body += ["", f"![PSNR vs time]({common.rel(fig, out.parent)})"]
+    return common.section(NAME, "Reconstruction: held-out PSNR versus wall time", common.command(NAME + ".py", argv),
+                          info, body, args.quick)
+
+
+# --------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--backbones", nargs="+", default=list(BACKBONES), choices=BACKBONES)
+    p.add_argument("--scenes", nargs="+", default=["head", "fern"], choices=["head", "fern"])
+    p.add_argument("--budget-scale", type=float, default=None,
+                   help="multiply the time budgets (head 600 s, fern 900 s); default 1 (quick: 0.015)")
+    p.add_argument("--checkpoints", type=int, default=None, help="evaluations per run (default 10; quick 2)")
+    p.add_argument("--eval-views", type=int, default=None,
+                   help="held-out views rendered at intermediate checkpoints (0 = all; default 2; quick 1)")
+    p.add_argument("--fixed-schedule", action="store_true", help="schedule LR/anneal over reconstruct.steps")
+    p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    common.add_common_args(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for noisy in ("lightning", "lightning.pytorch", "lightning.fabric", "nerfart_plugin"):
+        logging.getLogger(noisy).setLevel(logging.WARNING)
+    if args.budget_scale is None:
+        args.budget_scale = 0.015 if args.quick else 1.0
+    if args.checkpoints is None:
+        args.checkpoints = 2 if args.quick else 10
+    if args.eval_views is None:
+        args.eval_views = 1 if args.quick else 2
+    info = common.machine_info()
+    out, figs = common.output_paths(args)
+    specs = scene_specs()
+    extra = list(args.override) + (QUICK_OVERRIDES if args.quick else [])
+
+    results: dict[str, dict[str, Any]] = {}
+    for scene in args.scenes:
+        s = specs[scene]
+        scene_ov = s["overrides"] + (s["quick"] if args.quick else []) + extra
+        s["overrides_used"] = scene_ov
+        budget = s["budget"] * args.budget_scale
+        cps = [budget * (i + 1) / args.checkpoints for i in range(args.checkpoints - 1)]
+        log.info("== %s: loading (%s)", scene, " ".join(scene_ov))
+        try:
+            pipe = load_scene(scene_ov)
+        except Exception as exc:  # noqa: BLE001 - report and go on with the other scene
+            log.error("cannot load %s: %s", scene, exc)
+            results[scene] = {bb: {"error": f"{type(exc).__name__}: {exc}"} for bb in args.backbones}
+            continue
+        results[scene] = {}
+        for bb in args.backbones:
+            log.info("== %s / %s: budget %.0f s", scene, bb, budget)
+            try:
+                results[scene][bb] = train_one(pipe, [*scene_ov, f"backbone={bb}"], budget, cps, args.eval_views,
+                                               not args.fixed_schedule)
+            except Exception as exc:  # noqa: BLE001
+                log.exception("run failed")
+                results[scene][bb] = {"error": f"{type(exc).__name__}: {exc}"}
+        del pipe
+    fig = figs / "reconstruction.png"
+    try:
+        plot(results, specs, fig)
+    except Exception as exc:  # noqa: BLE001
+        log.warning("no plot: %s", exc)
+        fig = None
+    raw = out.parent / "outputs" / "benchmarks" / f"{NAME}{'.quick' if args.quick else ''}.json" \
+        if out.parent == ROOT else out.parent / f"{NAME}.json"
+    raw.parent.mkdir(parents=True, exist_ok=True)
+    raw.write_text(json.dumps({"args": vars(args) | {"out": str(out), "figures": str(figs)}, "results": results},
+                              default=str, indent=1))
+    common.finish(args, NAME, report(results, specs, args, argv, info, fig, out, extra))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

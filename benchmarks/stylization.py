@@ -1,0 +1,298 @@
+"""Time per stylization step, its breakdown, and the resolution / local-patch trade-off.
+
+Part 1 (goal: one step < 2x one CLIP ViT-B/32 forward+backward at 224 px):
+the project's :class:`~nerfart_plugin.systems.stylization.StylizationSystem` on the
+shipped head scene at ``stylize.resolution`` (128), driven by a Lightning
+``Trainer``, with the paper's guidance architectures (open_clip ViT-B/32 + VGG16)
+built with RANDOM weights (``guidance.allow_random_weights=true``): random weights
+cost exactly what the OpenAI/ImageNet weights cost, and none can be downloaded
+here. The system records per-step ``timings`` (no-grad render, losses + dL/dI,
+patch backprop); CLIP (global view, local patches) and VGG forward+backward at
+that resolution are also timed on their own. Reference: one
+``open_clip.create_model("ViT-B-32", pretrained=None)`` image forward+backward at
+224 px in the same run.
+
+Part 2 (issue 5): time per step and CLIP score after ``--sweep-steps`` steps
+versus resolution (64/128/256) and number of local patches (0/4/8/16), with
+``--guidance toy`` (default: deterministic toy encoders, the score is the toy
+score) or ``--guidance clip`` (needs the CLIP/VGG weights; real scores and times).
+
+The source field is a freshly initialised reconstruction unless
+``--source-checkpoint`` names a ``final.ckpt`` of a head reconstruction with the same
+backbone/encoding (the cost per step does not depend on the weights: every ray
+gets ``render.num_samples`` samples).
+
+    python benchmarks/stylization.py
+    python benchmarks/stylization.py --guidance clip --source-checkpoint outputs/reconstructions/.../final.ckpt
+    python benchmarks/stylization.py --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import common  # noqa: E402
+
+log = logging.getLogger("bench.stylization")
+NAME = "stylization"
+PROMPT = "Vincent van Gogh"
+RANDOM_CLIP = ["guidance=clip", "guidance.allow_random_weights=true", "guidance.allow_download=false",
+               "guidance.clip.pretrained=null", "guidance.vgg.weights=null"]
+QUICK_OVERRIDES = ["render.num_samples=16", "render.occupancy.resolution=16", "stylize.patch_size=16",
+                   "render.chunk=1024", "data.resolution=32", "stylize.num_negatives=8"]
+
+
+def timed(fn: Callable[[], Any], reps: int) -> float:
+    """Median seconds of ``fn()`` over ``reps`` runs after one warm-up."""
+    fn()
+    out = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        out.append(time.perf_counter() - t0)
+    return statistics.median(out)
+
+
+def fwd_bwd(encode: Callable, x_shape: tuple[int, ...]) -> Callable[[], None]:
+    import torch
+
+    def run() -> None:
+        x = torch.rand(x_shape, requires_grad=True)
+        y = encode(x)
+        (sum(t.float().mean() for t in y) if isinstance(y, (list, tuple)) else y.float().mean()).backward()
+
+    return run
+
+
+def clip_reference(reps: int) -> float:
+    """One open_clip ViT-B/32 (random weights) image forward+backward at 224 px, seconds (median)."""
+    import open_clip
+
+    net = open_clip.create_model("ViT-B-32", pretrained=None).eval()
+    for p in net.parameters():
+        p.requires_grad_(False)
+    return timed(fwd_bwd(net.encode_image, (1, 3, 224, 224)), reps)
+
+
+# --------------------------------------------------------------------------- scene and system
+class Context:
+    """Scene, setup and source weights shared by every run."""
+
+    def __init__(self, overrides: list[str], source_checkpoint: Optional[Path]) -> None:
+        from nerfart_plugin.pipeline import Pipeline, _renderer_state
+        from nerfart_plugin.systems.base import build_renderer
+
+        self.base = overrides
+        self.pipe = Pipeline(common.compose(["stage=reconstruct", *overrides]))
+        self.pipe.load_data()
+        c = self.pipe.c
+        if source_checkpoint is not None:
+            self.source_state = _renderer_state(Path(source_checkpoint))
+        else:
+            import torch
+
+            torch.manual_seed(0)
+            self.source_state = build_renderer(c["backbone"], c["encoding"], c["render"], self.pipe.setup).state_dict()
+
+
+def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, perceptual=None,
+              score: bool = False) -> dict[str, Any]:
+    """``steps`` stylization steps with the composed config; per-step timings (+ CLIP score)."""
+    import lightning as L
+
+    from nerfart_plugin.evaluation import clip_scores
+    from nerfart_plugin.guidance import (augment_prompt, build_guidance, build_perceptual, default_source_prompt,
+                                         load_negatives)
+    from nerfart_plugin.systems.base import steps_loader
+    from nerfart_plugin.systems.stylization import StylizationSystem, style_views
+
+    c = common.compose(["stage=stylize", f"+prompt={PROMPT}", *ctx.base, *overrides])
+    L.seed_everything(int(c["seed"]), verbose=False)
+    guidance = guidance or build_guidance(c["guidance"])
+    perceptual = perceptual or build_perceptual(c["guidance"])
+    scene, sc = ctx.pipe.scene, c["stylize"]
+    views = style_views(scene, scene.train_ids, int(sc["resolution"]), ctx.pipe.dm.ndc)
+    prompt = augment_prompt(PROMPT)
+    src_prompt = default_source_prompt(scene.capture, has_person=scene.masks is not None)
+    system = StylizationSystem(sc, c["experiment"], c["backbone"], c["encoding"], c["render"], ctx.pipe.setup,
+                               ctx.source_state, views, guidance, perceptual, prompt, src_prompt, load_negatives(),
+                               seed=int(c["seed"]))
+
+    class Recorder(L.Callback):
+        def __init__(self) -> None:
+            self.timings: list[dict[str, float]] = []
+
+        def on_train_batch_end(self, trainer, pl_module, *args: Any) -> None:
+            self.timings.append(dict(pl_module.timings))
+
+    rec = Recorder()
+    trainer = L.Trainer(max_steps=steps, accelerator={"cuda": "gpu"}.get(ctx.pipe.device.type, "cpu"), devices=1,
+                        logger=False, callbacks=[rec], enable_checkpointing=False, enable_model_summary=False,
+                        enable_progress_bar=False, num_sanity_val_steps=0, limit_val_batches=0)
+    trainer.fit(system, train_dataloaders=steps_loader())
+    out: dict[str, Any] = {"timings": rec.timings, "resolution": int(sc["resolution"]),
+                           "local_patches": int(sc["local_patches"]), "guidance": guidance, "perceptual": perceptual,
+                           "patch_size": int(sc["patch_size"]), "num_samples": int(c["render"]["num_samples"])}
+    if score:
+        import torch
+
+        system.eval()
+        ids = scene.val_ids or scene.train_ids[:4]
+        ev = style_views(scene, ids, int(sc["resolution"]), ctx.pipe.dm.ndc)
+        with torch.no_grad():
+            sty = torch.stack([system.render_batch(v)["rgb"].permute(2, 0, 1) for v in ev]).clamp(0, 1)
+            src = torch.stack([system.render_batch(v, source=True)["rgb"].permute(2, 0, 1) for v in ev]).clamp(0, 1)
+        out.update(clip_scores(guidance, sty, src, prompt, src_prompt))
+    return out
+
+
+def steady(timings: list[dict[str, float]], skip_first: bool = True) -> dict[str, float]:
+    """Median of each timing over the steps (first step dropped when there are more), step without
+    the one-off source-view cache."""
+    use = timings[1:] if skip_first and len(timings) > 1 else timings
+    keys = use[0].keys()
+    med = {k: statistics.median(t[k] for t in use) for k in keys}
+    med["step_no_cache"] = statistics.median(t["step"] - t["source_cache"] for t in use)
+    return med
+
+
+# --------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--guidance", choices=["toy", "clip"], default="toy", help="guidance of the part-2 sweep")
+    p.add_argument("--steps", type=int, default=None, help="part 1 steps (default 6, quick 2); the first is dropped")
+    p.add_argument("--reps", type=int, default=None, help="repetitions of the isolated timings (default 5, quick 2)")
+    p.add_argument("--resolutions", type=int, nargs="+", default=None, help="part 2 (default 64 128 256)")
+    p.add_argument("--patches", type=int, nargs="+", default=None, help="part 2 local patches (default 0 4 8 16)")
+    p.add_argument("--sweep-steps", type=int, default=None, help="part 2 steps per configuration (default 20)")
+    p.add_argument("--skip-sweep", action="store_true", help="part 1 only")
+    p.add_argument("--source-checkpoint", type=Path, default=None)
+    p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    common.add_common_args(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    for noisy in ("lightning", "lightning.pytorch", "lightning.fabric", "nerfart_plugin"):
+        logging.getLogger(noisy).setLevel(logging.ERROR)
+    q = args.quick
+    steps = args.steps or (2 if q else 6)
+    reps = args.reps or (2 if q else 5)
+    resolutions = args.resolutions or ([16, 32] if q else [64, 128, 256])
+    patches = args.patches or ([0, 4] if q else [0, 4, 8, 16])
+    sweep_steps = args.sweep_steps or (2 if q else 20)
+    base = list(args.override) + (QUICK_OVERRIDES if q else [])
+    info = common.machine_info()
+    out_md, _ = common.output_paths(args)
+
+    import torch
+
+    from nerfart_plugin.guidance import random_patches
+
+    ctx = Context(base, args.source_checkpoint)
+    res1 = 32 if q else int(ctx.pipe.c["stylize"]["resolution"])
+    log.info("part 1: %d steps at %d px with random-weight CLIP ViT-B/32 + VGG16", steps, res1)
+    r1 = run_steps(ctx, [*RANDOM_CLIP, f"stylize.resolution={res1}"], steps)
+    t1 = steady(r1["timings"])
+    g, perc = r1["guidance"], r1["perceptual"]
+    k = int(ctx.pipe.c["stylize"]["local_patches"])
+    frac = float(ctx.pipe.c["stylize"]["local_patch_frac"])
+    iso = {
+        "clip_global": timed(fwd_bwd(g.encode_image, (1, 3, res1, res1)), reps),
+        "clip_local": timed(fwd_bwd(lambda x: g.encode_image(random_patches(x, k, frac, g.input_size)),
+                                    (1, 3, res1, res1)), reps) if k > 0 else 0.0,
+        "vgg": timed(fwd_bwd(perc.features, (1, 3, res1, res1)), reps),
+    }
+    ref = clip_reference(reps)
+    ratio = t1["step_no_cache"] / ref
+    log.info("step %.2f s, CLIP reference %.2f s, ratio %.2f", t1["step_no_cache"], ref, ratio)
+
+    sweep: list[dict[str, Any]] = []
+    if not args.skip_sweep:
+        gov = RANDOM_CLIP[:1] if args.guidance == "clip" else ["guidance=toy"]
+        gcache: dict[str, Any] = {}
+        for res in resolutions:
+            for n in patches:
+                log.info("part 2: %d px, %d local patches, %d steps (%s)", res, n, sweep_steps, args.guidance)
+                ov = [*gov, f"stylize.resolution={res}", f"stylize.local_patches={n}"]
+                if n == 0:
+                    ov.append("experiment.lambda_local=0")
+                try:
+                    r = run_steps(ctx, ov, sweep_steps, gcache.get("g"), gcache.get("p"), score=True)
+                    gcache.setdefault("g", r["guidance"])
+                    gcache.setdefault("p", r["perceptual"])
+                    s = steady(r["timings"])
+                    sweep.append({"resolution": res, "local_patches": n, "step": s["step_no_cache"],
+                                  "render_nograd": s["render_nograd"], "losses": s["losses_and_image_grad"],
+                                  "patch_backprop": s["patch_backprop"], "clip_score": r["clip_score"],
+                                  "clip_score_source": r["clip_score_source"],
+                                  "clip_dir": r["clip_directional_similarity"]})
+                except Exception as exc:  # noqa: BLE001 - one failed cell must not lose the others
+                    log.exception("sweep cell failed")
+                    sweep.append({"resolution": res, "local_patches": n, "error": f"{type(exc).__name__}: {exc}"})
+
+    # ------------------------------------------------------------------ report
+    f2 = lambda v: common.fmt(v, ".2f")
+    body = [
+        f"Head scene (shipped h3ds), stylization view {res1}x{res1} px, backbone={ctx.pipe.c['backbone']['name']}, "
+        f"encoding={ctx.pipe.c['encoding']['name']}, {r1['num_samples']} samples/ray, patches of "
+        f"{r1['patch_size']}x{r1['patch_size']} rays, {k} local patches, {len(r1['timings'])} steps "
+        "(medians, first step dropped; the one-off render of each view's source image is excluded). "
+        "Guidance: open_clip ViT-B/32 + VGG16 with RANDOM weights (same architecture, hence the same cost, as the "
+        "OpenAI / ImageNet weights, which cannot be downloaded here). Source field: "
+        + ("`" + str(args.source_checkpoint) + "`." if args.source_checkpoint else
+           "freshly initialised (cost per step does not depend on the weights)."),
+        "",
+        "### Part 1: one step versus one CLIP forward+backward",
+        "",
+    ]
+    body += common.md_table(["what", "seconds"], [
+        ["**one stylization step** (no source cache)", f"**{t1['step_no_cache']:.2f}**"],
+        ["– no-grad render of the view (pass 1)", f2(t1["render_nograd"])],
+        ["– losses + dL/dI (CLIP, VGG, contrastive)", f2(t1["losses_and_image_grad"])],
+        ["– patch backprop (pass 2)", f2(t1["patch_backprop"])],
+        [f"isolated: CLIP encode_image fwd+bwd of the {res1} px view (resized to 224)", f2(iso["clip_global"])],
+        [f"isolated: CLIP encode_image fwd+bwd of {k} local patches", f2(iso["clip_local"])],
+        [f"isolated: VGG16 features fwd+bwd at {res1} px", f2(iso["vgg"])],
+        ["**reference: open_clip ViT-B-32 (pretrained=None) image fwd+bwd at 224 px**", f"**{ref:.2f}**"],
+    ], "lr")
+    body += ["", f"Ratio step / CLIP reference = **{ratio:.2f}** (goal < 2): **{'MET' if ratio < 2 else 'NOT MET'}**"
+             + (" (quick run: not judged)" if q else "") + "."]
+    if sweep:
+        body += ["", f"### Part 2: resolution and local patches ({args.guidance} guidance, {sweep_steps} steps each)", ""]
+        if args.guidance == "toy":
+            body += ["Toy guidance: the CLIP score is the TOY encoders' cosine to the prompt (a smoke measure of the "
+                     "optimisation, not CLIP), and the time per step does not include CLIP/VGG's real cost (see part 1). "
+                     "Run with `--guidance clip` and weights for real figures.", ""]
+        rows = []
+        for s in sweep:
+            if "error" in s:
+                rows.append([s["resolution"], s["local_patches"], "error: " + s["error"][:60], "", "", "", "", "", ""])
+                continue
+            rows.append([s["resolution"], s["local_patches"], f2(s["step"]), f2(s["render_nograd"]), f2(s["losses"]),
+                         f2(s["patch_backprop"]), common.fmt(s["clip_score"], ".4f"),
+                         common.fmt(s["clip_score_source"], ".4f"), common.fmt(s["clip_dir"], ".3f")])
+        body += common.md_table(["resolution", "local patches", "step (s)", "render (s)", "losses (s)",
+                                 "backprop (s)", "CLIP score", "source score", "CLIP dir. sim."], rows)
+    raw_dir = common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks"
+    raw_dir.mkdir(parents=True, exist_ok=True)
+    (raw_dir / f"{NAME}.json").write_text(json.dumps({"part1": {"timings": r1["timings"], "isolated": iso,
+                                                                "clip_reference": ref, "ratio": ratio},
+                                                      "sweep": sweep}, indent=1, default=str))
+    text = common.section(NAME, "Stylization: time per step and the resolution / local-patch trade-off",
+                          common.command(NAME + ".py", argv), info, body, q)
+    common.finish(args, NAME, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
