@@ -170,6 +170,21 @@ def finish(args: argparse.Namespace, name: str, text: str) -> Path:
     return out
 
 
+def quiet_logs() -> None:
+    """Keep the benchmark's own INFO lines; silence Lightning's banners and library warnings."""
+    import logging
+    import warnings
+
+    import lightning  # noqa: F401  (configures its loggers on import; override them after)
+
+    for name in ("lightning", "lightning.pytorch", "lightning.fabric", "lightning.pytorch.utilities.rank_zero",
+                 "nerfart_plugin"):
+        logging.getLogger(name).setLevel(logging.ERROR)
+    warnings.filterwarnings("ignore", category=UserWarning)
+    warnings.filterwarnings("ignore", category=DeprecationWarning)
+    warnings.filterwarnings("ignore", category=FutureWarning)
+
+
 # --------------------------------------------------------------------------- config
 def compose(overrides: Sequence[str]) -> dict[str, Any]:
     """The project config composed by Hydra from ``conf/`` with ``overrides``, as a plain dict."""

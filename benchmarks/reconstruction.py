@@ -85,28 +85,33 @@ def _budget_callback(budget: float, checkpoints: list[float], evaluate, stretch_
         def _reschedule(self, trainer, pl_module, t: float) -> None:
             step = max(1, trainer.global_step)
             total = max(step + 1, int(step + (budget - t) * step / max(t, 1e-9)))
+            total = min(total, int(trainer.max_steps))
             pl_module.total_steps = total
             for cfg in trainer.lr_scheduler_configs:
                 sched = cfg.scheduler
                 if hasattr(sched, "lr_lambdas"):
                     sched.lr_lambdas = [lambda s, T=total: 0.1 ** min(s / T, 1.0)] * len(sched.lr_lambdas)
 
+        def _record(self, trainer, pl_module, t: float, final: bool) -> None:
+            e0 = time.perf_counter()
+            metrics = evaluate(pl_module, final=final)
+            pl_module.train()
+            self.eval_seconds += time.perf_counter() - e0
+            self.records.append({"time": t, "step": trainer.global_step, "eval_seconds": time.perf_counter() - e0,
+                                 "final": final, **metrics})
+            log.info("  t=%6.1f s step %5d: %s", t, trainer.global_step,
+                     ", ".join(f"{k} {v:.3f}" for k, v in metrics.items() if isinstance(v, float)))
+
         def on_train_batch_end(self, trainer, pl_module, *args: Any) -> None:
             t = self.train_seconds()
             step = trainer.global_step
             if stretch_schedule and step == 20:
                 self._reschedule(trainer, pl_module, t)
-            done = t >= budget
+            done = t >= budget or step >= trainer.max_steps
             if (self.pending and t >= self.pending[0]) or done:
                 while self.pending and self.pending[0] <= t:
                     self.pending.pop(0)
-                e0 = time.perf_counter()
-                metrics = evaluate(pl_module, final=done)
-                pl_module.train()
-                self.eval_seconds += time.perf_counter() - e0
-                self.records.append({"time": t, "step": step, "eval_seconds": time.perf_counter() - e0, **metrics})
-                log.info("  t=%6.1f s step %5d: %s", t, step,
-                         ", ".join(f"{k} {v:.3f}" for k, v in metrics.items() if isinstance(v, float)))
+                self._record(trainer, pl_module, t, done)
                 if stretch_schedule and not done:
                     self._reschedule(trainer, pl_module, t)
             if done:
@@ -127,17 +132,21 @@ def load_scene(overrides: list[str]):
 
 
 def train_one(p, overrides: list[str], budget: float, checkpoints: list[float], eval_views: int,
-              stretch_schedule: bool) -> dict[str, Any]:
-    """Train one backbone on the loaded scene of ``p`` for ``budget`` s; returns records + final metrics."""
+              stretch_schedule: bool, max_steps: int = 10**9) -> dict[str, Any]:
+    """Train one backbone on the loaded scene of ``p`` for ``budget`` s of training (or ``max_steps``);
+    returns the checkpoint records and the final metrics (all held-out views)."""
     import lightning as L
     import torch
 
     from nerfart_plugin.systems.base import steps_loader
     from nerfart_plugin.systems.reconstruction import ReconstructionSystem, view_metrics
 
+    from nerfart_plugin.systems.scene_setup import decide_setup
+
     c = common.compose(["stage=reconstruct", *overrides])
     L.seed_everything(int(c["seed"]), verbose=False)
-    system = ReconstructionSystem(c["reconstruct"], c["backbone"], c["encoding"], c["render"], p.setup,
+    setup = decide_setup(p.scene, c["render"], ndc=p.dm.ndc)  # this run's render settings (samples, grid)
+    system = ReconstructionSystem(c["reconstruct"], c["backbone"], c["encoding"], c["render"], setup,
                                   train_rays=p.dm.train_rays, seed=int(c["seed"]))
     views = [p.dm.view_batch(i) for i in (p.scene.val_ids or p.scene.train_ids[:1])]
     chunk = int(c["render"]["chunk"])
@@ -160,7 +169,7 @@ def train_one(p, overrides: list[str], budget: float, checkpoints: list[float], 
     device = p.device
     accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
     devices = [device.index] if device.type == "cuda" and device.index is not None else 1
-    trainer = L.Trainer(max_steps=10**9, accelerator=accelerator, devices=devices,
+    trainer = L.Trainer(max_steps=int(max_steps), accelerator=accelerator, devices=devices,
                         precision=c["trainer"]["precision"], logger=False, callbacks=[cb],
                         enable_checkpointing=False, enable_model_summary=False, enable_progress_bar=False,
                         num_sanity_val_steps=0, limit_val_batches=0)
@@ -305,8 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     common.add_common_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    for noisy in ("lightning", "lightning.pytorch", "lightning.fabric", "nerfart_plugin"):
-        logging.getLogger(noisy).setLevel(logging.WARNING)
+    common.quiet_logs()
     if args.budget_scale is None:
         args.budget_scale = 0.015 if args.quick else 1.0
     if args.checkpoints is None:

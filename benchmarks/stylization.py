@@ -182,14 +182,13 @@ def main(argv: list[str] | None = None) -> int:
     common.add_common_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    for noisy in ("lightning", "lightning.pytorch", "lightning.fabric", "nerfart_plugin"):
-        logging.getLogger(noisy).setLevel(logging.ERROR)
+    common.quiet_logs()
     q = args.quick
     steps = args.steps or (2 if q else 6)
-    reps = args.reps or (2 if q else 5)
-    resolutions = args.resolutions or ([16, 32] if q else [64, 128, 256])
+    reps = args.reps or (1 if q else 5)
+    resolutions = args.resolutions or ([16] if q else [64, 128, 256])
     patches = args.patches or ([0, 4] if q else [0, 4, 8, 16])
-    sweep_steps = args.sweep_steps or (2 if q else 20)
+    sweep_steps = args.sweep_steps or (1 if q else 20)
     base = list(args.override) + (QUICK_OVERRIDES if q else [])
     info = common.machine_info()
     out_md, _ = common.output_paths(args)

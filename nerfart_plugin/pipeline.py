@@ -339,7 +339,7 @@ class Pipeline:
 
         ec = self.c["export"]
         ex = MeshExtractor(resolution=int(ec["resolution"]), bound=float(field.bound), chunk=int(ec["chunk"]),
-                           remove_floaters=bool(ec.get("remove_floaters", True)))
+                           level=ec.get("level"), remove_floaters=bool(ec.get("remove_floaters", True)))
         try:
             mesh = ex.extract(field)
         except NerfArtError as exc:

@@ -40,8 +40,18 @@ def _losses(run_dir: Path, key: str = "train/loss_rgb") -> list[float]:
     return [float(r[key]) for r in rows if r.get(key)]
 
 
-def test_reconstruction_loss_drops_and_cache_is_reused(tmp_path: Path, small_head: Path) -> None:
-    over = ["stage=reconstruct", "backbone=nerf", "reconstruct.steps=100"]
+RECON = ["backbone=nerf", "reconstruct.steps=100"]
+
+
+@pytest.fixture(scope="module")
+def shared_root(tmp_path_factory) -> Path:
+    """One output root for the module: later tests reuse the cached reconstruction."""
+    return tmp_path_factory.mktemp("runs")
+
+
+def test_reconstruction_loss_drops_and_cache_is_reused(shared_root: Path, small_head: Path) -> None:
+    tmp_path = shared_root
+    over = ["stage=reconstruct", *RECON]
     p = Pipeline(tiny_cfg(tmp_path, small_head, *over))
     res = p.run()
     run_dir = Path(res["reconstruction"]["dir"])
@@ -127,8 +137,39 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path, small_head: Path)
             assert torch.equal(a[k], b[k]), k
 
 
-def test_toy_stylization_toward_red_makes_renders_redder(tmp_path: Path, small_head: Path) -> None:
-    over = ["stage=all", "guidance=toy", "prompt=red", "backbone=nerf", "reconstruct.steps=150",
+def test_export_stage_writes_meshes_in_every_format(shared_root: Path, small_head: Path) -> None:
+    over = ["stage=export", *RECON, "export.level=0.5", "export.formats=[ply,obj,glb]"]
+    p = Pipeline(tiny_cfg(shared_root, small_head, *over))
+    p.load_data()
+    if not (p.recon_dir / "final.ckpt").exists():
+        Pipeline(tiny_cfg(shared_root, small_head, "stage=reconstruct", *RECON)).run()
+    res = Pipeline(tiny_cfg(shared_root, small_head, *over)).run()
+    stem = Path(res["export"]["mesh"])
+    for ext in ("ply", "obj", "glb"):
+        assert stem.with_suffix(f".{ext}").stat().st_size > 0
+    import trimesh
+
+    mesh = trimesh.load(stem.with_suffix(".ply"), force="mesh")
+    assert len(mesh.vertices) == res["export"]["vertices"] > 0
+
+
+def test_out_of_memory_names_the_settings_to_lower(monkeypatch) -> None:
+    from nerfart_plugin import pipeline as pl
+    from nerfart_plugin.errors import NerfArtError
+
+    class Boom:
+        def fit(self, *a, **k):
+            raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
+
+    p = pl.Pipeline.__new__(pl.Pipeline)
+    with pytest.raises(NerfArtError, match="stylize.patch_size") as info:
+        p._fit(Boom(), None)
+    assert "render.chunk" in str(info.value) and "stylize.resolution" in str(info.value)
+
+
+def test_toy_stylization_toward_red_makes_renders_redder(shared_root: Path, small_head: Path) -> None:
+    tmp_path = shared_root
+    over = ["stage=all", "guidance=toy", "prompt=red", *RECON,
             "stylize.steps=25", "stylize.lr=0.01", "stylize.lr_mlp=0.005"]
     res = Pipeline(tiny_cfg(tmp_path, small_head, *over)).run()
     sty_dir = Path(res["stylization"]["dir"])

@@ -41,6 +41,8 @@ class VolumeRenderer(nn.Module):
         clip_to_bound: restrict [near, far] to the ray's intersection with the
             field's box [-bound, bound]^3 (rays that miss it get zero-length
             sections and render the background).
+        compact: query the field only at non-empty sections (``delta > 0``);
+            empty ones are transparent anyway, so results are unchanged.
     """
 
     def __init__(
@@ -52,8 +54,10 @@ class VolumeRenderer(nn.Module):
         background_color: Optional[Sequence[float]] = (1.0, 1.0, 1.0),
         num_coarse: int = 256,
         clip_to_bound: bool = True,
+        compact: bool = True,
     ) -> None:
         super().__init__()
+        self.compact = bool(compact)
         self.field = field
         self.num_samples = int(num_samples)
         self.background = background
@@ -134,7 +138,7 @@ class VolumeRenderer(nn.Module):
         pts = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [R,K,3]
         dirs_k = dirs[:, None, :].expand(R, K, 3)
 
-        out = self.field(pts.reshape(-1, 3), dirs_k.reshape(-1, 3))
+        out, reg_out = self._query_field(pts.reshape(-1, 3), dirs_k.reshape(-1, 3), deltas.reshape(-1) > 0)
         alpha = self.field.alpha(out, deltas, dirs_k).float()
         alpha = torch.where(deltas > 0, alpha, torch.zeros_like(alpha))  # zero-length section = transparent
         weights, _ = weights_from_alpha(alpha)
@@ -155,8 +159,32 @@ class VolumeRenderer(nn.Module):
             normal = out["normal"].reshape(R, K, 3).float()
             result["normal"] = (weights[..., None] * normal).sum(-2)
         if torch.is_grad_enabled():
-            result.update(self.field.regularizers(out))
+            result.update(self.field.regularizers(reg_out))
         return result
+
+    def _query_field(self, x: Tensor, d: Tensor, valid: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+        """``field(x, d)`` evaluated only where ``valid`` [N] (non-empty sections), zero-filled elsewhere.
+
+        Occupancy sampling gives rays that miss every occupied cell zero-length
+        sections (transparent whatever the field says); skipping them saves
+        most of the field cost on object captures. Returns ``(out [N,...],
+        compact_out)``; the regularizers use ``compact_out`` (valid samples only).
+        """
+        n = x.shape[0]
+        if not self.compact or bool(valid.all()):
+            out = self.field(x, d)
+            return out, out
+        idx = valid.nonzero()[:, 0]
+        if idx.numel() == 0:  # keep shapes/graph alive: evaluate one (transparent) sample
+            idx = torch.zeros(1, dtype=torch.long, device=x.device)
+        sub = self.field(x.index_select(0, idx), d.index_select(0, idx))
+        full = {}
+        for k, v in sub.items():
+            if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == idx.shape[0]:
+                full[k] = v.new_zeros((n, *v.shape[1:])).index_copy(0, idx, v)
+            else:
+                full[k] = v
+        return full, sub
 
     @torch.no_grad()
     def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False) -> dict[str, Tensor]:

@@ -98,6 +98,10 @@ class StylizationSystem(RenderSystem):
         source = build_renderer(backbone_cfg, encoding_cfg, render_cfg, setup)
         source.load_state_dict(source_state)
         source.requires_grad_(False).eval()
+        # The reconstruction's occupancy grid already concentrates samples at the surface, so the
+        # stylization stage can afford fewer samples per ray (stylize.num_samples; null: as rendered).
+        if self.cfg.get("num_samples"):
+            self.renderer.num_samples = source.num_samples = int(self.cfg["num_samples"])
         # Frozen helpers live outside the module tree: not trained, not checkpointed.
         self._frozen = {"source": source, "guidance": guidance, "perceptual": perceptual}
         self.views = views

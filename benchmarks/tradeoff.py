@@ -1,0 +1,220 @@
+"""Reconstruction quality / time trade-off on the head: backbone x encoding x samples x resolution.
+
+Each configuration (``backbone`` in nerf/volsdf/neus, ``encoding`` in grid/frequency,
+``render.num_samples`` in 32/64/128/192, ``data.resolution`` in 64/128) trains on the
+shipped head scene with the default config otherwise (preset balanced), for
+``reconstruct.steps`` steps or ``--budget`` seconds of training, whichever comes
+first, and is evaluated (masked PSNR, PSNR, SSIM over all held-out views) at
+``--checkpoints`` moments of training time (evaluation excluded from the clock;
+the same callback as ``benchmarks/reconstruction.py``). The three presets
+(``preset=draft|balanced|paper``, at ``data.resolution=128`` so that they are
+comparable) run as extra configurations with ``--presets``.
+
+The plot (``benchmarks/figures/tradeoff.png``) shows every (training time, masked
+PSNR) checkpoint; the Pareto front (no other point is both faster and better) is
+highlighted, and each preset is said to be on the front, near it (within
+``--near`` dB of the best PSNR reached by that time), or off it.
+
+The full grid is 48 runs: select a subset, e.g.
+
+    python benchmarks/tradeoff.py --backbones volsdf --encodings grid --samples 32 64 --resolutions 64
+    python benchmarks/tradeoff.py --presets-only
+    python benchmarks/tradeoff.py --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import logging
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import common  # noqa: E402
+from benchmarks.reconstruction import load_scene, train_one  # noqa: E402
+
+log = logging.getLogger("bench.tradeoff")
+NAME = "tradeoff"
+PRESETS = ("draft", "balanced", "paper")
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of the points (time, psnr) not dominated by another (faster-or-equal and better-or-equal)."""
+    front = []
+    for i, (t, q) in enumerate(points):
+        if not any((t2 <= t and q2 >= q) and (t2 < t or q2 > q) for j, (t2, q2) in enumerate(points) if j != i):
+            front.append(i)
+    return sorted(front, key=lambda i: points[i][0])
+
+
+def best_by(points: list[tuple[float, float]], t: float) -> float:
+    """Best PSNR among points reached within time ``t``."""
+    return max((q for t2, q in points if t2 <= t), default=float("-inf"))
+
+
+def label(cfg: dict[str, Any]) -> str:
+    if "preset" in cfg:
+        return f"preset={cfg['preset']}"
+    return f"{cfg['backbone']}/{cfg['encoding']}/{cfg['samples']}spp/{cfg['resolution']}px"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--backbones", nargs="+", default=["nerf", "volsdf", "neus"], choices=["nerf", "volsdf", "neus"])
+    p.add_argument("--encodings", nargs="+", default=["grid", "frequency"], choices=["grid", "frequency"])
+    p.add_argument("--samples", type=int, nargs="+", default=[32, 64, 128, 192])
+    p.add_argument("--resolutions", type=int, nargs="+", default=[64, 128])
+    p.add_argument("--presets", action="store_true", help="also run preset=draft|balanced|paper (at 128 px)")
+    p.add_argument("--presets-only", action="store_true", help="only the three presets")
+    p.add_argument("--budget", type=float, default=None, help="training seconds per run (default 300; quick 4)")
+    p.add_argument("--steps", type=int, default=None, help="max steps per run (default: reconstruct.steps)")
+    p.add_argument("--checkpoints", type=int, default=None, help="evaluations per run (default 4; quick 1)")
+    p.add_argument("--near", type=float, default=0.5, help="dB below the front that still counts as near it")
+    p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    common.add_common_args(p)
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    common.quiet_logs()
+    q = args.quick
+    subset_flags = ("--backbones", "--encodings", "--samples", "--resolutions", "--presets")
+    if q and not any(a.startswith(subset_flags) for a in argv):  # smallest useful smoke grid
+        args.backbones, args.encodings, args.samples, args.resolutions = ["volsdf"], ["grid", "frequency"], [8, 16], [16]
+        args.presets = True
+    budget = args.budget or (4.0 if q else 300.0)
+    checkpoints = args.checkpoints or (1 if q else 4)
+    extra = list(args.override) + (["reconstruct.batch_rays=128", "render.occupancy.resolution=16"] if q else [])
+    info = common.machine_info()
+    out, figs = common.output_paths(args)
+
+    configs: list[dict[str, Any]] = []
+    if not args.presets_only:
+        for bb, enc, spp, res in itertools.product(args.backbones, args.encodings, sorted(args.samples),
+                                                   sorted(args.resolutions)):
+            configs.append({"backbone": bb, "encoding": enc, "samples": spp, "resolution": res,
+                            "overrides": [f"data.resolution={res}", f"backbone={bb}", f"encoding={enc}",
+                                          f"render.num_samples={spp}"]})
+    if args.presets or args.presets_only:
+        pres_res = 16 if q else 128
+        for name in PRESETS:
+            ov = [f"preset={name}", f"data.resolution={pres_res}"]
+            if q:
+                ov.append("render.num_samples=8")
+            configs.append({"preset": name, "resolution": pres_res, "overrides": ov})
+
+    scenes: dict[tuple, Any] = {}
+    results: list[dict[str, Any]] = []
+    for cfg in configs:
+        ov = ["data=h3ds", *cfg["overrides"], *extra]
+        # the loaded scene depends on the data settings only (train_one decides the setup per run)
+        key = tuple(o for o in ov if o.startswith(("data.", "preset=")))
+        name = label(cfg)
+        log.info("== %s (budget %.0f s)", name, budget)
+        try:
+            if key not in scenes:
+                scenes.clear()  # keep one scene in memory
+                scenes[key] = load_scene(ov)
+            steps = args.steps or int(common.compose(["stage=reconstruct", *ov])["reconstruct"]["steps"])
+            cps = [budget * (i + 1) / checkpoints for i in range(checkpoints - 1)]
+            r = train_one(scenes[key], ov, budget, cps, 0, True, max_steps=steps)
+            results.append({**cfg, "label": name, **r})
+        except Exception as exc:  # noqa: BLE001 - one failed configuration must not lose the others
+            log.exception("run failed")
+            results.append({**cfg, "label": name, "error": f"{type(exc).__name__}: {exc}"})
+
+    metric = "psnr_masked"
+    pts, owner = [], []
+    for i, r in enumerate(results):
+        for rec in r.get("records", []):
+            if metric in rec:
+                pts.append((rec["time"], rec[metric]))
+                owner.append(i)
+    front = pareto(pts)
+    on_front = {owner[i] for i in front}
+
+    def standing(i: int) -> str:
+        r = results[i]
+        if "error" in r or not r.get("records"):
+            return "not measured"
+        if i in on_front:
+            return "ON the front"
+        gaps = [best_by(pts, rec["time"]) - rec.get(metric, float("-inf")) for rec in r["records"]]
+        gap = min(gaps)
+        return f"near (-{gap:.2f} dB)" if gap <= args.near else f"off (-{gap:.2f} dB)"
+
+    fig: Optional[Path] = figs / "tradeoff.png"
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        f, ax = plt.subplots(figsize=(8, 5))
+        for i, r in enumerate(results):
+            recs = [x for x in r.get("records", []) if metric in x]
+            if not recs:
+                continue
+            is_preset = "preset" in r
+            ax.plot([x["time"] for x in recs], [x[metric] for x in recs], marker="*" if is_preset else "o",
+                    ms=10 if is_preset else 4, lw=1.5 if is_preset else 0.6, alpha=1.0 if is_preset else 0.5,
+                    label=r["label"] if is_preset or len(results) <= 12 else None)
+        fx = [pts[i][0] for i in front]
+        fy = [pts[i][1] for i in front]
+        ax.step(fx, fy, where="post", color="black", lw=2, label="Pareto front")
+        ax.scatter(fx, fy, color="black", zorder=5)
+        ax.set_xlabel("training wall time (s, evaluation excluded)")
+        ax.set_ylabel("held-out masked PSNR (dB)")
+        ax.set_title("head: quality vs time (backbone x encoding x samples x resolution)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+        f.tight_layout()
+        fig.parent.mkdir(parents=True, exist_ok=True)
+        f.savefig(fig, dpi=120)
+        plt.close(f)
+    except Exception as exc:  # noqa: BLE001
+        log.warning("no plot: %s", exc)
+        fig = None
+
+    rows = []
+    for i, r in enumerate(results):
+        if "error" in r:
+            rows.append([r["label"], "error: " + r["error"][:70], "", "", "", "", "", ""])
+            continue
+        fin = r["final"]
+        rows.append([r["label"], common.fmt(r["train_seconds"], ".0f"), r["steps"], common.fmt(r["sec_per_step"], ".2f"),
+                     common.fmt(fin.get("psnr_masked")), common.fmt(fin.get("psnr")), common.fmt(fin.get("ssim"), ".3f"),
+                     standing(i)])
+    body = [
+        f"Head scene (shipped h3ds), default config (preset balanced) except the swept settings; each run trains for "
+        f"reconstruct.steps steps or {budget:.0f} s of training, whichever comes first"
+        + (f" (extra overrides: {' '.join(extra)})" if extra else "") + f"; {checkpoints} evaluation(s) per run on all "
+        "held-out views (time excluded). Presets run at data.resolution=128 (paper's native resolution would be 256). "
+        f"Pareto front over all checkpoints (time, masked PSNR); 'near' = within {args.near:g} dB of the best PSNR "
+        "any configuration reached by the same time.",
+        "",
+    ]
+    body += common.md_table(["configuration", "train time (s)", "steps", "s/step", "masked PSNR (dB)", "PSNR (dB)",
+                             "SSIM", "Pareto"], rows, "lrrrrrrl")
+    body += ["", "Pareto front (time s: masked PSNR dB, configuration): "
+             + "; ".join(f"{pts[i][0]:.0f}: {pts[i][1]:.2f} ({results[owner[i]]['label']})" for i in front) + "."]
+    pres = [i for i, r in enumerate(results) if "preset" in r]
+    if pres:
+        body += ["", "Presets: " + "; ".join(f"**{results[i]['preset']}** {standing(i)}" for i in pres) + "."]
+    if fig is not None:
+        body += ["", f"![PSNR vs time, Pareto front]({common.rel(fig, out.parent)})"]
+    raw = (common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks") / f"{NAME}.json"
+    raw.parent.mkdir(parents=True, exist_ok=True)
+    raw.write_text(json.dumps(results, indent=1, default=str))
+    text = common.section(NAME, "Trade-off: reconstruction quality versus time (head)", common.command(NAME + ".py", argv),
+                          info, body, q)
+    common.finish(args, NAME, text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,50 @@
+"""Ablation presets and presets compose to the intended λ weights and settings."""
+
+from __future__ import annotations
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+from nerfart_plugin.config_paths import config_dir
+
+PAPER = {"lambda_dir": 1.0, "lambda_global": 0.2, "lambda_local": 0.1, "lambda_perceptual": 2.0, "lambda_reg": 0.1}
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+@pytest.mark.parametrize(
+    "name,changed",
+    [
+        ("full", {}),
+        ("no_contrastive", {"lambda_global": 0.0, "lambda_local": 0.0}),
+        ("no_local", {"lambda_local": 0.0}),
+        ("no_global", {"lambda_global": 0.0}),
+        ("no_reg", {"lambda_reg": 0.0}),
+        ("absolute_dir", {"lambda_global": 0.0, "lambda_local": 0.0}),
+    ],
+)
+def test_experiment_lambdas(name: str, changed: dict) -> None:
+    exp = _compose(f"experiment={name}").experiment
+    assert exp.name == name
+    for k, v in {**PAPER, **changed}.items():
+        assert exp[k] == pytest.approx(v), k
+    assert exp.directional == ("absolute" if name == "absolute_dir" else "relative")
+
+
+def test_paper_preset_is_the_papers_settings() -> None:
+    cfg = _compose("preset=paper")
+    assert cfg.encoding.name == "frequency"
+    assert cfg.render.num_samples == 192
+    assert cfg.data.resolution is None  # full-resolution views
+
+
+def test_presets_order_by_cost() -> None:
+    samples = [_compose(f"preset={p}").render.num_samples for p in ("draft", "balanced", "paper")]
+    assert samples == sorted(samples) and len(set(samples)) == 3
+
+
+def test_command_line_beats_preset() -> None:
+    assert _compose("preset=paper", "render.num_samples=7").render.num_samples == 7
