@@ -87,12 +87,16 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     info = {"setup": {k: v for k, v in p.setup.to_dict().items() if k != "reasons"},
             "image": [p.scene.width, p.scene.height], "rays_per_view": p.scene.width * p.scene.height}
     cuda = p.device.type == "cuda"
+    if mode == "render":  # warm-up on a few rays: lazy initialisation is not part of the measurement
+        view = p.dm.view_batch((p.scene.val_ids or p.scene.train_ids)[0])
+        with torch.no_grad():
+            system.eval().renderer.render_chunked({k: (v[:64] if torch.is_tensor(v) and v.dim() else v)
+                                                   for k, v in view.items()}, chunk=64)
     gc.collect()
     base = torch.cuda.memory_allocated(p.device) if cuda else common.peak_rss()
     if cuda:
         torch.cuda.reset_peak_memory_stats(p.device)
     if mode == "render":
-        view = p.dm.view_batch((p.scene.val_ids or p.scene.train_ids)[0])
         t0 = time.perf_counter()
         system.eval()
         with torch.no_grad():
@@ -183,7 +187,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in results:
         setup = r["train"].get("setup") or r["render"].get("setup") or {}
         img = r["render"].get("image") or r["train"].get("image")
-        choice = (f"occ {setup.get('occupancy_resolution', '?')}^3, bg model {'on' if setup.get('background_model') else 'off'}"
+        occ = setup.get("occupancy_resolution", 0)
+        choice = ((f"occ {occ}^3" if occ else "occ off") + f", bg model {'on' if setup.get('background_model') else 'off'}"
                   + (", NDC" if setup.get("ndc") else "")) if setup else "?"
         rows.append([r["scene"], f"{img[0]}x{img[1]}" if img else "?", r["variant"], choice,
                      cell(r, "train", "seconds", lambda v: f"{v:.3f}") + rel_to_auto(r, "train", "seconds"),

@@ -209,7 +209,9 @@ class Pipeline:
         from nerfart_plugin.systems.base import steps_loader
 
         try:
-            trainer.fit(system, train_dataloaders=steps_loader(), val_dataloaders=val, ckpt_path=ckpt_path)
+            # our own checkpoints (they hold optimizer and loop state, not only tensors)
+            trainer.fit(system, train_dataloaders=steps_loader(), val_dataloaders=val, ckpt_path=ckpt_path,
+                        weights_only=False)
         except torch.OutOfMemoryError as exc:
             raise NerfArtError(_OOM_HINT) from exc
         except RuntimeError as exc:

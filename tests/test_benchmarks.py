@@ -1,0 +1,116 @@
+"""benchmarks/*.py: each script's quick mode runs and writes only its own marked section.
+
+Tiny budgets (a few seconds of training, 16-32 px views) so the whole file stays
+well under 3 minutes on 2 shared cores; the numbers are not checked, only that
+the scripts run end to end and produce a section with its table.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow
+
+
+def _load(name: str):
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    spec = importlib.util.spec_from_file_location(f"bench_{name}", REPO / "benchmarks" / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _section(text: str, name: str) -> str:
+    start, end = f"<!-- {name}:start -->", f"<!-- {name}:end -->"
+    assert text.count(start) == 1 and text.count(end) == 1, f"{name}: markers missing or repeated"
+    return text[text.index(start): text.index(end)]
+
+
+def _table_rows(section: str) -> list[str]:
+    lines = [l for l in section.splitlines() if l.startswith("|")]
+    assert len(lines) >= 3, f"no table in section:\n{section}"
+    return lines[2:]
+
+
+@pytest.fixture()
+def out(tmp_path: Path) -> Path:
+    p = tmp_path / "BENCH.md"
+    p.write_text("# Benchmarks\n\nintro\n\n<!-- other:start -->\nkeep me\n<!-- other:end -->\n")
+    return p
+
+
+def _check_common(text: str, name: str, cmd_part: str) -> str:
+    assert "intro" in text and "keep me" in text, "other sections must be preserved"
+    sec = _section(text, name)
+    assert "QUICK smoke run" in sec, "quick results must be labelled"
+    assert f"`python benchmarks/{name}.py" in sec and cmd_part in sec
+    assert re.search(r"Machine: \d+ CPUs \(nproc\), .*torch .*load average at start [\d.]+", sec)
+    return sec
+
+
+def test_common_write_section_replaces_only_its_own(tmp_path: Path) -> None:
+    common = _load("common")
+    p = tmp_path / "B.md"
+    common.write_section(p, "x", "<!-- x:start -->\nfirst\n<!-- x:end -->")
+    common.write_section(p, "y", "<!-- y:start -->\nother\n<!-- y:end -->")
+    common.write_section(p, "x", "<!-- x:start -->\nsecond\n<!-- x:end -->")
+    text = p.read_text()
+    assert text.startswith("# Benchmarks") and "first" not in text and "second" in text and "other" in text
+    assert text.count("<!-- x:start -->") == 1
+
+
+def test_patch_backprop_quick(out: Path) -> None:
+    mod = _load("patch_backprop")
+    assert mod.main(["--quick", "--sizes", "16", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "patch_backprop", "--sizes 16")
+    rows = _table_rows(sec)
+    assert rows[0].startswith("| 16x16 | 256 |")
+    diff = float(rows[0].split("|")[8])
+    assert diff < 1e-3, "patch backprop gradients must match full backprop"
+
+
+def test_reconstruction_quick(out: Path) -> None:
+    mod = _load("reconstruction")
+    assert mod.main(["--quick", "--scenes", "head", "--backbones", "volsdf", "--budget-scale", "0.005",
+                     "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "reconstruction", "--backbones volsdf")
+    rows = _table_rows(sec)
+    assert rows[0].startswith("| head | volsdf |") and "error" not in rows[0]
+    assert float(rows[0].split("|")[7]) > 0  # masked PSNR
+    assert (out.parent / "figures" / "reconstruction.png").is_file()
+
+
+def test_tradeoff_quick(out: Path) -> None:
+    mod = _load("tradeoff")
+    assert mod.main(["--quick", "--backbones", "volsdf", "--encodings", "grid", "frequency", "--samples", "8",
+                     "--resolutions", "16", "--budget", "2", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "tradeoff", "--budget 2")
+    rows = _table_rows(sec)
+    assert len(rows) == 2 and all("error" not in r for r in rows)
+    assert sum("ON the front" in r for r in rows) >= 1
+    assert (out.parent / "figures" / "tradeoff.png").is_file()
+
+
+def test_stylization_quick(out: Path) -> None:
+    mod = _load("stylization")
+    assert mod.main(["--quick", "--steps", "2", "--reps", "1", "--patches", "0", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "stylization", "--patches 0")
+    assert "reference: open_clip ViT-B-32" in sec and "Ratio step / CLIP reference" in sec
+    rows = [r for r in _table_rows(sec) if r.startswith("| 16 |")]
+    assert rows and "error" not in rows[0]
+
+
+def test_scene_setup_quick(out: Path) -> None:
+    mod = _load("scene_setup")
+    assert mod.main(["--quick", "--variants", "auto", "no occupancy", "--steps", "2", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "scene_setup", "--variants auto")
+    rows = _table_rows(sec)
+    assert len(rows) == 2 and all("error" not in r for r in rows)
+    assert "occ off" in rows[1]
