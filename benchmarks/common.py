@@ -205,10 +205,47 @@ def shared_data() -> Path:
 
 
 # --------------------------------------------------------------------------- isolated measurements
+def _status_kib(key: str) -> Optional[int]:
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def peak_rss() -> int:
-    """Peak resident set size of this process so far, bytes (Linux ru_maxrss is in KiB)."""
+    """Peak resident set size of this process, bytes: VmHWM (resettable, see :func:`reset_peak_rss`),
+    else ``getrusage`` ru_maxrss (peak since the process started)."""
+    hwm = _status_kib("VmHWM")
+    if hwm is not None:
+        return hwm * 1024
     r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return int(r) * (1 if sys.platform == "darwin" else 1024)
+
+
+def reset_peak_rss() -> int:
+    """Reset the peak-RSS mark to the current RSS (Linux: ``5`` into /proc/self/clear_refs) and return
+    the current RSS in bytes: the baseline of a measurement. Without the reset the baseline is the
+    peak so far (a transient peak during setup then hides smaller ones)."""
+    import gc
+
+    gc.collect()
+    try:  # give freed heap back to the OS, so later allocations show up in RSS instead of reusing it
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        cur = _status_kib("VmRSS")
+        if cur is not None:
+            return cur * 1024
+    except OSError:
+        pass
+    return peak_rss()
 
 
 def limit_memory(extra_bytes: float) -> Optional[float]:

@@ -17,8 +17,8 @@ regularization (Eq. 7) per ray. Both methods use identical samples, so their
 parameter gradients must agree: the table gives the max relative difference.
 
 Each (method, size) runs in a fresh subprocess; memory = the child's peak RSS
-(``getrusage(RUSAGE_SELF).ru_maxrss``) minus its peak after setup (field built,
-warm-up done), or ``torch.cuda.max_memory_allocated`` on CUDA. A child's address
+(VmHWM, reset after setup: field built, warm-up done) minus its RSS at that
+moment, or ``torch.cuda.max_memory_allocated`` on CUDA. A child's address
 space is capped at setup + ``--mem-cap`` GiB and its run time at ``--timeout`` s;
 sizes predicted (linearly in the number of rays) to exceed either are skipped.
 
@@ -133,7 +133,7 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     loss_fn = image_loss_fn(size, device)
     r.zero_grad(set_to_none=True)
     gc.collect()
-    base = common.peak_rss()
+    base = common.reset_peak_rss()
     if device.type == "cuda":
         torch.cuda.synchronize()
         torch.cuda.reset_peak_memory_stats(device)
@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
         f"(untrained field: cost does not depend on the weights, every ray gets K samples). "
         f"Patch backprop: pass 1 in chunks of {c['render']['chunk']} rays, patches of {patch}x{patch} = {patch * patch} rays. "
         "Loss: toy absolute CLIP (Eq. 3) + 2 x toy edge perceptual (Eq. 9) on the whole image + 0.1 x Eq. 7 per ray. "
-        f"Memory: {how} above the child's peak after setup and warm-up (MiB); each configuration in a fresh process. "
+        f"Memory: {how} above the child's RSS after setup and warm-up (peak mark reset there; MiB); each configuration in a fresh process. "
         f"Caps: {args.mem_cap:g} GiB, {args.timeout:g} s per configuration.",
         "",
     ]

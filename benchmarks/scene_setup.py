@@ -16,7 +16,7 @@ Lightning Trainer; mean over ``--steps`` steps after ``--warmup`` steps, so the
 occupancy-grid refreshes every ``update_every`` steps are amortised in) and of
 rendering one full held-out view without grad (``render.chunk`` rays at a time).
 Each (scene, variant, training|rendering) runs in a fresh subprocess; memory = peak
-RSS above the child's peak after loading the scene and building the model
+RSS (VmHWM, reset after loading the scene and building the model) above the RSS at that moment
 (``torch.cuda.max_memory_allocated`` on CUDA).
 
     python benchmarks/scene_setup.py
@@ -93,7 +93,7 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
             system.eval().renderer.render_chunked({k: (v[:64] if torch.is_tensor(v) and v.dim() else v)
                                                    for k, v in view.items()}, chunk=64)
     gc.collect()
-    base = torch.cuda.memory_allocated(p.device) if cuda else common.peak_rss()
+    base = torch.cuda.memory_allocated(p.device) if cuda else common.reset_peak_rss()
     if cuda:
         torch.cuda.reset_peak_memory_stats(p.device)
     if mode == "render":
@@ -202,7 +202,7 @@ def main(argv: list[str] | None = None) -> int:
         f"{c['render']['occupancy']['resolution']}^3 refreshed every {c['render']['occupancy']['update_every']} steps"
         + (f"; extra overrides {' '.join(extra)}" if extra else "") + "). "
         f"Training step: mean over {steps} steps after {warm} warm-up steps (untrained field). View: one full held-out "
-        "view, no grad. Memory: peak RSS (MiB) above the child's peak after loading the scene and building the model, "
+        "view, no grad. Memory: peak RSS (MiB) above the child's RSS after loading the scene and building the model (peak mark reset there), "
         "one fresh process per cell. In brackets: relative to the scene's `auto` setup. The number of samples per ray "
         "is the same in every variant: the occupancy grid moves samples to occupied space (quality per sample), it "
         "does not remove samples.",

@@ -74,14 +74,16 @@ def fwd_bwd(encode: Callable, x_shape: tuple[int, ...]) -> Callable[[], None]:
     return run
 
 
-def clip_reference(reps: int) -> float:
+def clip_reference(reps: int, model_overrides: Optional[dict] = None) -> float:
     """One open_clip ViT-B/32 (random weights) image forward+backward at 224 px, seconds (median)."""
     import open_clip
 
-    net = open_clip.create_model("ViT-B-32", pretrained=None).eval()
+    net = open_clip.create_model("ViT-B-32", pretrained=None, **(model_overrides or {})).eval()
     for p in net.parameters():
         p.requires_grad_(False)
-    return timed(fwd_bwd(net.encode_image, (1, 3, 224, 224)), reps)
+    size = net.visual.image_size
+    size = size if isinstance(size, int) else size[0]
+    return timed(fwd_bwd(net.encode_image, (1, 3, size, size)), reps)
 
 
 # --------------------------------------------------------------------------- scene and system
@@ -106,7 +108,7 @@ class Context:
 
 
 def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, perceptual=None,
-              score: bool = False) -> dict[str, Any]:
+              score: bool = False, clip_overrides: Optional[dict] = None) -> dict[str, Any]:
     """``steps`` stylization steps with the composed config; per-step timings (+ CLIP score)."""
     import lightning as L
 
@@ -118,6 +120,8 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
 
     c = common.compose(["stage=stylize", f"+prompt={PROMPT}", *ctx.base, *overrides])
     L.seed_everything(int(c["seed"]), verbose=False)
+    if clip_overrides and c["guidance"]["name"] == "clip":
+        c["guidance"]["clip"]["model_overrides"] = clip_overrides
     guidance = guidance or build_guidance(c["guidance"])
     perceptual = perceptual or build_perceptual(c["guidance"])
     scene, sc = ctx.pipe.scene, c["stylize"]
@@ -175,10 +179,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reps", type=int, default=None, help="repetitions of the isolated timings (default 5, quick 2)")
     p.add_argument("--resolutions", type=int, nargs="+", default=None, help="part 2 (default 64 128 256)")
     p.add_argument("--patches", type=int, nargs="+", default=None, help="part 2 local patches (default 0 4 8 16)")
-    p.add_argument("--sweep-steps", type=int, default=None, help="part 2 steps per configuration (default 20)")
+    p.add_argument("--sweep-steps", type=int, default=None, help="part 2 steps per configuration (default 10)")
     p.add_argument("--skip-sweep", action="store_true", help="part 1 only")
     p.add_argument("--source-checkpoint", type=Path, default=None)
     p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    p.add_argument("--tiny-clip", action="store_true", help="tests only: a 1-layer CLIP instead of ViT-B/32")
     common.add_common_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -188,7 +193,7 @@ def main(argv: list[str] | None = None) -> int:
     reps = args.reps or (1 if q else 5)
     resolutions = args.resolutions or ([16] if q else [64, 128, 256])
     patches = args.patches or ([0, 4] if q else [0, 4, 8, 16])
-    sweep_steps = args.sweep_steps or (1 if q else 20)
+    sweep_steps = args.sweep_steps or (1 if q else 10)
     base = list(args.override) + (QUICK_OVERRIDES if q else [])
     info = common.machine_info()
     out_md, _ = common.output_paths(args)
@@ -200,7 +205,10 @@ def main(argv: list[str] | None = None) -> int:
     ctx = Context(base, args.source_checkpoint)
     res1 = 32 if q else int(ctx.pipe.c["stylize"]["resolution"])
     log.info("part 1: %d steps at %d px with random-weight CLIP ViT-B/32 + VGG16", steps, res1)
-    r1 = run_steps(ctx, [*RANDOM_CLIP, f"stylize.resolution={res1}"], steps)
+    tiny = None
+    if args.tiny_clip:
+        from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES as tiny
+    r1 = run_steps(ctx, [*RANDOM_CLIP, f"stylize.resolution={res1}"], steps, clip_overrides=tiny)
     t1 = steady(r1["timings"])
     g, perc = r1["guidance"], r1["perceptual"]
     k = int(ctx.pipe.c["stylize"]["local_patches"])
@@ -211,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
                                     (1, 3, res1, res1)), reps) if k > 0 else 0.0,
         "vgg": timed(fwd_bwd(perc.features, (1, 3, res1, res1)), reps),
     }
-    ref = clip_reference(reps)
+    ref = clip_reference(reps, tiny)
     ratio = t1["step_no_cache"] / ref
     log.info("step %.2f s, CLIP reference %.2f s, ratio %.2f", t1["step_no_cache"], ref, ratio)
 
@@ -226,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
                 if n == 0:
                     ov.append("experiment.lambda_local=0")
                 try:
-                    r = run_steps(ctx, ov, sweep_steps, gcache.get("g"), gcache.get("p"), score=True)
+                    r = run_steps(ctx, ov, sweep_steps, gcache.get("g"), gcache.get("p"), score=True,
+                                  clip_overrides=tiny)
                     gcache.setdefault("g", r["guidance"])
                     gcache.setdefault("p", r["perceptual"])
                     s = steady(r["timings"])
@@ -247,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
         f"{r1['patch_size']}x{r1['patch_size']} rays, {k} local patches, {len(r1['timings'])} steps "
         "(medians, first step dropped; the one-off render of each view's source image is excluded). "
         "Guidance: open_clip ViT-B/32 + VGG16 with RANDOM weights (same architecture, hence the same cost, as the "
-        "OpenAI / ImageNet weights, which cannot be downloaded here). Source field: "
+        "OpenAI / ImageNet weights, which cannot be downloaded here)"
+        + (" — **--tiny-clip: a 1-layer test CLIP, NOT ViT-B/32 (tests only)**" if tiny else "") + ". Source field: "
         + ("`" + str(args.source_checkpoint) + "`." if args.source_checkpoint else
            "freshly initialised (cost per step does not depend on the weights)."),
         "",

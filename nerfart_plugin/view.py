@@ -216,8 +216,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             n_samples=args.samples,
         )
     except NerfArtError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        parser.exit(2, f"error: {exc}\n")
     return 0
 
 

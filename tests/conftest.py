@@ -28,3 +28,16 @@ def repo_root() -> Path:
 @pytest.fixture(autouse=True)
 def _seed() -> None:
     torch.manual_seed(0)
+
+
+@pytest.fixture(autouse=True)
+def _project_loggers_propagate():
+    """In-process Hydra/Lightning/benchmark runs reconfigure logging (dictConfig may disable
+    existing loggers or stop propagation); keep the project's loggers visible to caplog."""
+    import logging
+
+    for name, lg in list(logging.root.manager.loggerDict.items()):
+        if isinstance(lg, logging.Logger) and name.split(".")[0] == "nerfart_plugin":
+            lg.disabled = False
+            lg.propagate = True
+    yield

@@ -100,7 +100,7 @@ def test_tradeoff_quick(out: Path) -> None:
 
 def test_stylization_quick(out: Path) -> None:
     mod = _load("stylization")
-    assert mod.main(["--quick", "--steps", "2", "--reps", "1", "--patches", "0", "--out", str(out)]) == 0
+    assert mod.main(["--quick", "--tiny-clip", "--steps", "1", "--reps", "1", "--patches", "0", "--out", str(out)]) == 0
     sec = _check_common(out.read_text(), "stylization", "--patches 0")
     assert "reference: open_clip ViT-B-32" in sec and "Ratio step / CLIP reference" in sec
     rows = [r for r in _table_rows(sec) if r.startswith("| 16 |")]
@@ -109,8 +109,7 @@ def test_stylization_quick(out: Path) -> None:
 
 def test_scene_setup_quick(out: Path) -> None:
     mod = _load("scene_setup")
-    assert mod.main(["--quick", "--variants", "auto", "no occupancy", "--steps", "2", "--out", str(out)]) == 0
-    sec = _check_common(out.read_text(), "scene_setup", "--variants auto")
+    assert mod.main(["--quick", "--variants", "no occupancy", "--steps", "2", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "scene_setup", "--variants 'no occupancy'")
     rows = _table_rows(sec)
-    assert len(rows) == 2 and all("error" not in r for r in rows)
-    assert "occ off" in rows[1]
+    assert len(rows) == 1 and "error" not in rows[0] and "occ off" in rows[0]

@@ -63,7 +63,9 @@ def test_errors_name_the_file(tmp_path):
         load_mesh(bad)
     with pytest.raises(ConfigError, match="two meshes"):
         render_meshes([tmp_path / "x.ply"], scalars="displacement")
-    assert main([str(tmp_path / "missing.ply"), "--screenshot", str(tmp_path / "o.png")]) == 2
+    with pytest.raises(SystemExit) as info:
+        main([str(tmp_path / "missing.ply"), "--screenshot", str(tmp_path / "o.png")])
+    assert info.value.code == 2
 
 
 def test_cli_subprocess(tmp_path, mesh_files):

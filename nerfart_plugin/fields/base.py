@@ -189,6 +189,15 @@ class SDFField(Field):
     1e-3 * bound), ~4x faster to train with the grid encoding because
     ``grid_sample`` has no fast double backward on CPU. "auto" picks
     finite_difference for the grid encoding, analytic otherwise.
+
+    Speed knobs: ``color_normal`` (default True: the colour net sees the
+    normal, as in IDR/NeuS; False: features and direction only) and
+    ``grad_samples`` (default 1.0): with ``color_normal=false`` and an alpha
+    that does not read the gradient (VolSDF; NeuS with ``alpha_mode=sections``)
+    the training forward evaluates the geometry once per sample and the
+    (4-tap) gradient only on this random fraction of samples, for the eikonal
+    term: ~2.5x cheaper per sample with the grid encoding. No-grad rendering
+    always computes every gradient (normal maps, contract).
     """
 
     is_sdf = True
@@ -198,11 +207,19 @@ class SDFField(Field):
     # Regular tetrahedron vertices: sum v = 0, sum v v^T = 4 I  =>  grad g ~ sum_i v_i g(x + h v_i) / (4h).
     _TETRA = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
 
+    #: whether ``alpha`` reads ``out["gradient"]`` (then every sample needs its gradient)
+    alpha_needs_gradient: bool = False
+
     def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0, radius: Optional[float] = None,
-                 refine_init: bool = True, grad_type: str = "auto", fd_eps: Optional[float] = None, **kw: Any) -> None:
+                 refine_init: bool = True, grad_type: str = "auto", fd_eps: Optional[float] = None,
+                 color_normal: bool = True, grad_samples: float = 1.0, **kw: Any) -> None:
         super().__init__(encoding_cfg, bound, **kw)
         if grad_type not in ("auto", "analytic", "finite_difference"):
             raise ConfigError(f"backbone.grad_type={grad_type!r}; use 'auto', 'analytic' or 'finite_difference'.")
+        if not 0.0 < float(grad_samples) <= 1.0:
+            raise ConfigError(f"backbone.grad_samples={grad_samples!r}; use a fraction in (0, 1].")
+        self.color_normal = bool(color_normal)
+        self.grad_samples = float(grad_samples)
         if grad_type == "auto":
             grad_type = "finite_difference" if isinstance(self.encoding, TensorVMGridEncoding) else "analytic"
         self.grad_type = grad_type
@@ -211,7 +228,7 @@ class SDFField(Field):
         self.radius = float(radius) if radius is not None else 0.5 * self.bound
         self.geo_net = GeometricInitMLP(self.encoding.n_output_dims, self.hidden_dim, self.n_layers, self.feature_dim,
                                         self.radius, refine_init=refine_init)
-        color_in = self.feature_dim + 3 + self.dir_encoding.n_output_dims
+        color_in = self.feature_dim + 3 * int(self.color_normal) + self.dir_encoding.n_output_dims
         self.color_net = make_mlp(color_in, self.color_hidden_dim, 3, self.color_layers)
 
     def _geo(self, x: Tensor) -> Tensor:
@@ -221,8 +238,21 @@ class SDFField(Field):
         """SDF [N] (world units, negative inside)."""
         return self._geo(x)[..., 0].float()
 
+    def _subsample_gradient(self) -> bool:
+        return (self.grad_samples < 1.0 and torch.is_grad_enabled() and not self.color_normal
+                and not self.alpha_needs_gradient)
+
     def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
-        """x [N,3], d [N,3] unit -> ``rgb`` [N,3], ``sdf`` [N], ``gradient`` [N,3], ``normal`` [N,3] (unit)."""
+        """x [N,3], d [N,3] unit -> ``rgb`` [N,3], ``sdf`` [N], ``gradient`` [N,3], ``normal`` [N,3] (unit).
+
+        With ``grad_samples < 1`` (training only, needs ``color_normal=false`` and
+        an alpha that ignores the gradient) the gradient is computed for a random
+        ``grad_samples`` fraction of the points only; the other rows of
+        ``gradient``/``normal`` are 0 and ``gradient_mask`` [N] (bool) marks
+        the computed rows (the eikonal term uses those).
+        """
+        if self._subsample_gradient():
+            return self._forward_subset(x, d)
         if self.grad_type == "finite_difference":
             return self._forward_fd(x, d)
         training_graph = torch.is_grad_enabled()
@@ -238,8 +268,33 @@ class SDFField(Field):
             sdf, feat, gradient = sdf.detach(), feat.detach(), gradient.detach()
         gradient = gradient.float()
         normal = F.normalize(gradient, dim=-1, eps=1e-8)
-        rgb = self._color([feat, normal.to(feat.dtype)], d)
+        rgb = self._color([feat, normal.to(feat.dtype)] if self.color_normal else [feat], d)
         return {"rgb": rgb, "sdf": sdf.float(), "gradient": gradient, "normal": normal}
+
+    def _gradient(self, x: Tensor) -> Tensor:
+        """d sdf / dx [M,3] (finite differences or autograd per ``grad_type``), differentiable."""
+        if self.grad_type == "finite_difference":
+            h = self.fd_eps
+            tetra = self._tetra.to(device=x.device, dtype=x.dtype)
+            vals = self._geo((x[None] + h * tetra[:, None, :]).reshape(-1, 3))[..., 0].float().view(4, -1)
+            return (tetra[:, None, :] * vals[..., None]).sum(0) / (4.0 * h)
+        xg = x.detach().requires_grad_(True)
+        sdf = self._geo(xg)[..., 0]
+        return torch.autograd.grad(sdf, xg, torch.ones_like(sdf), create_graph=True)[0].float()
+
+    def _forward_subset(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
+        """Training forward with the gradient on a random ``grad_samples`` subset (see ``forward``)."""
+        N = x.shape[0]
+        h = self._geo(x).float()
+        sdf, feat = h[..., 0], h[..., 1:]
+        m = max(1, int(round(self.grad_samples * N)))
+        idx = torch.randperm(N, device=x.device)[:m]
+        g_sub = self._gradient(x.index_select(0, idx))
+        gradient = g_sub.new_zeros(N, 3).index_copy(0, idx, g_sub)
+        mask = torch.zeros(N, dtype=torch.bool, device=x.device).index_fill_(0, idx, True)
+        normal = F.normalize(gradient, dim=-1, eps=1e-8)
+        return {"rgb": self._color([feat], d), "sdf": sdf, "gradient": gradient, "normal": normal,
+                "gradient_mask": mask}
 
     def _forward_fd(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
         """Finite-difference variant: the geometry net runs once on the 4 tetrahedron points x + h v_i.
@@ -259,11 +314,18 @@ class SDFField(Field):
         mean = out.mean(0)
         sdf, feat = mean[..., 0], mean[..., 1:]
         normal = F.normalize(gradient, dim=-1, eps=1e-8)
-        rgb = self._color([feat, normal], d)
+        rgb = self._color([feat, normal] if self.color_normal else [feat], d)
         return {"rgb": rgb, "sdf": sdf, "gradient": gradient, "normal": normal}
+
+    def surface_width(self) -> float:
+        """Current thickness scale of the rendered surface (world units; 0 = sharp). Used by the occupancy grid."""
+        return 0.0
 
     def regularizers(self, out: dict[str, Tensor]) -> dict[str, Tensor]:
         """``eikonal``: mean over samples of ``(|grad sdf| - 1)^2``; plus encoding terms."""
         reg = super().regularizers(out)
-        reg["eikonal"] = (out["gradient"].norm(dim=-1) - 1.0).square().mean()
+        g = out["gradient"]
+        if "gradient_mask" in out:
+            g = g[out["gradient_mask"]]
+        reg["eikonal"] = (g.norm(dim=-1) - 1.0).square().mean()
         return reg

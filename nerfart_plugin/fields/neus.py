@@ -10,7 +10,8 @@ from torch import Tensor
 
 from nerfart_plugin.fields.base import SDFField
 from nerfart_plugin.registry import register
-from nerfart_plugin.rendering.volume import neus_alpha
+from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.rendering.volume import neus_alpha, neus_alpha_sections
 
 __all__ = ["NeuSField"]
 
@@ -23,12 +24,20 @@ class NeuSField(SDFField):
     (default 0.3; ``inv_s = exp(10 * variance)`` starts at ~20), ``inv_s_max``
     (default 1e5, clamp of inv_s), ``anneal_steps`` (default 0 = no cos
     annealing; otherwise the cos-anneal ratio goes linearly 0 -> 1 over the
-    first ``anneal_steps`` steps, driven by ``update_step``).
+    first ``anneal_steps`` steps, driven by ``update_step``), ``alpha_mode``
+    ("gradient", default: the reference code's mid-point estimate from
+    ``dot(d, grad sdf)``; "sections": NeuS Eq. 13 on the SDF at consecutive
+    samples, which needs no gradient, so ``grad_samples < 1`` can skip most of
+    the gradient cost; cos-annealing does not apply).
     """
 
     def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0, init_variance: float = 0.3,
-                 inv_s_max: float = 1e5, anneal_steps: int = 0, **kw: Any) -> None:
+                 inv_s_max: float = 1e5, anneal_steps: int = 0, alpha_mode: str = "gradient", **kw: Any) -> None:
+        if alpha_mode not in ("gradient", "sections"):
+            raise ConfigError(f"backbone neus: alpha_mode={alpha_mode!r}; use 'gradient' or 'sections'.")
+        self.alpha_needs_gradient = alpha_mode == "gradient"
         super().__init__(encoding_cfg, bound, **kw)
+        self.alpha_mode = alpha_mode
         self.variance = nn.Parameter(torch.tensor(float(init_variance)))
         self.inv_s_max = float(inv_s_max)
         self.anneal_steps = int(anneal_steps)
@@ -39,11 +48,18 @@ class NeuSField(SDFField):
         """Logistic sharpness ``exp(10 variance)`` clamped to [1, inv_s_max]."""
         return torch.exp(self.variance * 10.0).clamp(1.0, self.inv_s_max)
 
+    def surface_width(self) -> float:
+        """1 / inv_s (world units): the scale of the logistic density around the surface."""
+        return float(1.0 / self.inv_s.detach())
+
     def update_step(self, global_step: int, total_steps: int) -> None:
         self.cos_anneal_ratio = 1.0 if self.anneal_steps <= 0 else min(1.0, global_step / self.anneal_steps)
 
     def alpha(self, out: dict[str, Tensor], deltas: Tensor, dirs: Tensor) -> Tensor:
-        """NeuS section opacity [R,K] from sdf, ``dot(dir, grad sdf)`` and deltas."""
+        """NeuS section opacity [R,K]: from sdf, ``dot(dir, grad sdf)`` and deltas (``alpha_mode=gradient``),
+        or from the SDF at consecutive samples (``alpha_mode=sections``, see :func:`neus_alpha_sections`)."""
+        if self.alpha_mode == "sections":
+            return neus_alpha_sections(out["sdf"].reshape(deltas.shape), deltas, self.inv_s)
         grad = out["gradient"].reshape(*deltas.shape, 3)
         cos = (dirs.float() * grad.float()).sum(-1)
         return neus_alpha(out["sdf"].reshape(deltas.shape), cos, deltas, self.inv_s, self.cos_anneal_ratio)

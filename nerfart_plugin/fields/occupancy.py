@@ -32,7 +32,9 @@ class OccupancyGrid(nn.Module):
     * SDF fields: ``new = 1`` if ``|sdf| < sdf_band`` else 0, i.e. occupied near
       the surface; ``sdf_band`` defaults to one cell diagonal (a cell that the
       zero level set crosses has every point within one diagonal of it, so a
-      true SDF never misses it). Deep interior is skipped too: it is hidden
+      true SDF never misses it), widened to ``band_widths`` (default 3) times
+      the field's current ``surface_width()`` while the surface is still blurry
+      (see :meth:`band`). Deep interior is skipped too: it is hidden
       behind the surface. Threshold 0.5: a cell left by the surface stays
       occupied for ~13 updates (0.95^13 ~ 0.5).
 
@@ -54,6 +56,7 @@ class OccupancyGrid(nn.Module):
         warmup_steps: int = 256,
         sdf_band: Optional[float] = None,
         chunk: int = 65536,
+        band_widths: float = 3.0,
     ) -> None:
         super().__init__()
         self.resolution = int(resolution)
@@ -66,6 +69,7 @@ class OccupancyGrid(nn.Module):
         self.cell_size = 2.0 * self.bound / self.resolution
         self.sdf_band = float(sdf_band) if sdf_band is not None else math.sqrt(3.0) * self.cell_size
         self.chunk = int(chunk)
+        self.band_widths = float(band_widths)
         n = self.resolution**3
         self.register_buffer("score", torch.zeros(n))
         self.register_buffer("occupied", torch.ones(n, dtype=torch.bool))
@@ -103,11 +107,12 @@ class OccupancyGrid(nn.Module):
             rand = torch.randperm(n, device=device)[: n // 4]
             idx = torch.unique(torch.cat([rand, self.occupied.nonzero()[:, 0]]))
         new = torch.empty(idx.shape[0], device=device)
+        band = self.band(field) if field.is_sdf else 0.0
         for s in range(0, idx.shape[0], self.chunk):
             pts = self._cell_points(idx[s : s + self.chunk], generator)
             geo = field.geometry(pts).float()
             if field.is_sdf:
-                new[s : s + self.chunk] = (geo.abs() < self.sdf_band).float()
+                new[s : s + self.chunk] = (geo.abs() < band).float()
             else:
                 new[s : s + self.chunk] = -torch.expm1(-geo.clamp_min(0) * self.cell_size)
         new = torch.nan_to_num(new, nan=1.0)  # a NaN field must not silently empty the grid
@@ -116,6 +121,17 @@ class OccupancyGrid(nn.Module):
         self.occupied.copy_(self.score > thr)
         log.debug("occupancy grid step %d: %.1f%% occupied", step, 100.0 * float(self.occupied.float().mean()))
         return True
+
+    def band(self, field: "Field") -> float:
+        """SDF band half-width (world units): ``max(sdf_band, band_widths * field.surface_width())``.
+
+        Early in training the surface is blurry (VolSDF beta ~0.1, NeuS 1/inv_s
+        ~0.05): samples up to a few widths away from the zero level set get
+        weight and gradient, and the surface must be able to move there, so
+        the band follows the field's current width and shrinks as it sharpens.
+        """
+        width = float(getattr(field, "surface_width", lambda: 0.0)())
+        return max(self.sdf_band, self.band_widths * width)
 
     @property
     def occupied_fraction(self) -> float:

@@ -35,6 +35,10 @@ class VolSDFField(SDFField):
     def beta(self) -> Tensor:
         return self.beta_min + self.beta_param.abs()
 
+    def surface_width(self) -> float:
+        """beta (world units): the Laplace density falls by e per beta away from the surface."""
+        return float(self.beta.detach())
+
     def density(self, sdf: Tensor) -> Tensor:
         return volsdf_density(sdf, self.beta)
 

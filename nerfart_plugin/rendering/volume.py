@@ -42,6 +42,7 @@ __all__ = [
     "weights_from_alpha",
     "volsdf_density",
     "neus_alpha",
+    "neus_alpha_sections",
     "exclusive_cumsum",
     "ALPHA_T_EPS",
     "NEUS_EPS",
@@ -161,5 +162,35 @@ def neus_alpha(
     prev_sdf = sdf - iter_cos * deltas * 0.5
     prev_cdf = torch.sigmoid(prev_sdf * inv_s)
     next_cdf = torch.sigmoid(next_sdf * inv_s)
+    alpha = ((prev_cdf - next_cdf + NEUS_EPS) / (prev_cdf + NEUS_EPS)).clamp(0.0, 1.0)
+    return torch.where(deltas > 0, alpha, torch.zeros_like(alpha))
+
+
+def neus_alpha_sections(sdf: Tensor, deltas: Tensor, inv_s: Tensor | float) -> Tensor:
+    """NeuS discrete opacity (Wang et al. 2021, Eq. 13) from the SDF at consecutive samples, no gradient needed.
+
+    ``alpha_k = clamp((Phi_s(f_k) - Phi_s(f_{k+1}) + eps) / (Phi_s(f_k) + eps), 0, 1)``: the opacity
+    of the stretch from sample k to sample k+1 (colour ``c_k``). The last sample has no successor; its
+    ``f_{K+1}`` is extrapolated linearly, ``f_K + (f_K - f_{K-1}) * delta_K / delta_{K-1}``.
+
+    Args:
+        sdf: [R,K] SDF at the (sorted) sample points.
+        deltas: [R,K] section lengths; zero-length sections are transparent.
+        inv_s: scalar / broadcastable tensor, the logistic sharpness 1/s.
+
+    Returns:
+        alpha [R,K] float32 in [0,1]; finite values and gradients as :func:`neus_alpha`.
+    """
+    sdf = sdf.float()
+    deltas = deltas.float().clamp_min(0.0)
+    inv_s = torch.as_tensor(inv_s, dtype=torch.float32, device=sdf.device)
+    if sdf.shape[-1] > 1:
+        ratio = deltas[..., -1:] / deltas[..., -2:-1].clamp_min(1e-12)
+        last = sdf[..., -1:] + (sdf[..., -1:] - sdf[..., -2:-1]) * ratio.clamp(max=4.0)
+        nxt = torch.cat([sdf[..., 1:], last], dim=-1)
+    else:
+        nxt = sdf
+    prev_cdf = torch.sigmoid(sdf * inv_s)
+    next_cdf = torch.sigmoid(nxt * inv_s)
     alpha = ((prev_cdf - next_cdf + NEUS_EPS) / (prev_cdf + NEUS_EPS)).clamp(0.0, 1.0)
     return torch.where(deltas > 0, alpha, torch.zeros_like(alpha))
