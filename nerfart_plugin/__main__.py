@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import sys
 from pathlib import Path
-from typing import Optional
 
 import hydra
 from omegaconf import DictConfig
@@ -42,7 +41,7 @@ def normalize_overrides(argv: list[str], known: set[str]) -> list[str]:
 
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
-def _app(cfg: DictConfig) -> Optional[float]:
+def _app(cfg: DictConfig) -> float | None:
     """Run the pipeline; return the sweep objective (see :func:`nerfart_plugin.sweep.objective`).
 
     Hydra ignores the return value of a plain run; a sweeper such as Optuna

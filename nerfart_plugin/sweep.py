@@ -26,7 +26,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any
 
 import yaml
 from hydra.experimental.callback import Callback
@@ -57,7 +57,11 @@ def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
 
 
 def _scalar_metrics(d: dict) -> dict[str, Any]:
-    return {k: v for k, v in d.items() if isinstance(v, (int, float, str, bool)) or v is None}
+    return {
+        k: v
+        for k, v in d.items()
+        if isinstance(v, (int, float, str, bool)) or v is None
+    }
 
 
 def complete_results(results: dict[str, Any]) -> dict[str, Any]:
@@ -82,12 +86,16 @@ def complete_results(results: dict[str, Any]) -> dict[str, Any]:
         if stage == "reconstruction":
             keep = {k: v for k, v in metrics.items() if k.startswith(("psnr", "ssim"))}
         else:
-            keep = {k: v for k, v in metrics.items() if k.startswith(("clip_", "view_", "mesh_"))}
+            keep = {
+                k: v
+                for k, v in metrics.items()
+                if k.startswith(("clip_", "view_", "mesh_"))
+            }
         out[stage] = {**_scalar_metrics(keep), **entry}
     return out
 
 
-def objective(results: dict[str, Any], metric: Optional[str] = "auto") -> float:
+def objective(results: dict[str, Any], metric: str | None = "auto") -> float:
     """The float a sweeper optimizes (higher is better), from ``pipeline.run``'s result.
 
     Args:
@@ -109,10 +117,16 @@ def objective(results: dict[str, Any], metric: Optional[str] = "auto") -> float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
             value = float(value)
             if not math.isfinite(value):
-                raise ConfigError(f"objective {key} = {value} is not finite; the run diverged or had no "
-                                  "held-out views (check data.holdout_every).")
+                raise ConfigError(
+                    f"objective {key} = {value} is not finite; the run diverged or had no "
+                    "held-out views (check data.holdout_every)."
+                )
             return value
-    numeric = sorted(k for k, v in flat.items() if isinstance(v, (int, float)) and not isinstance(v, bool))
+    numeric = sorted(
+        k
+        for k, v in flat.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool)
+    )
     raise ConfigError(
         f"No objective {' / '.join(keys)} in this run's results (stage={results.get('stage')!r}). "
         f"Use stage=reconstruct|stylize|all, or set objective= to one of: {', '.join(numeric) or '(none)'}."
@@ -131,15 +145,22 @@ def _read_overrides(job: Path) -> list[str]:
     return [str(x) for x in data]
 
 
-def collect(sweep_dir: Path, metric: Optional[str] = "auto") -> list[dict[str, Any]]:
+def collect(sweep_dir: Path, metric: str | None = "auto") -> list[dict[str, Any]]:
     """One row per job folder (``<sweep_dir>/<job.num>``): overrides, status, objective, flattened metrics.
 
     ``overrides`` holds only the overrides that differ between jobs (the swept
     ones; all of them when there is a single job); ``all_overrides`` the full list.
     """
-    jobs = sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+    jobs = sorted(
+        (p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()),
+        key=lambda p: int(p.name),
+    )
     overrides = {job: _read_overrides(job) for job in jobs}
-    common = set.intersection(*(set(o) for o in overrides.values())) if len(jobs) > 1 else set()
+    common = (
+        set.intersection(*(set(o) for o in overrides.values()))
+        if len(jobs) > 1
+        else set()
+    )
     rows = []
     for job in jobs:
         result_file = job / "result.json"
@@ -151,14 +172,16 @@ def collect(sweep_dir: Path, metric: Optional[str] = "auto") -> list[dict[str, A
                 result = {"error": f"unreadable result.json: {exc}"}
         else:
             result = {"error": "no result.json (the job crashed or is still running)"}
-        row: dict[str, Any] = {"job": int(job.name),
-                               "overrides": " ".join(o for o in overrides[job] if o not in common)}
+        row: dict[str, Any] = {
+            "job": int(job.name),
+            "overrides": " ".join(o for o in overrides[job] if o not in common),
+        }
         if "error" in result:
             row.update(status="error", objective=None, error=result["error"])
         else:
             result = complete_results(result)
             try:
-                value: Optional[float] = objective(result, metric)
+                value: float | None = objective(result, metric)
             except ConfigError:
                 value = None
             row.update(status="ok", objective=value)
@@ -172,12 +195,20 @@ def markdown_table(rows: list[dict[str, Any]], title: str = "") -> str:
     """A Markdown table of :func:`collect`'s rows (folders and full override lists left out)."""
     cols: list[str] = []
     for r in rows:
-        cols += [k for k in r if k not in cols and not k.endswith(".dir") and k != "all_overrides"]
+        cols += [
+            k
+            for k in r
+            if k not in cols and not k.endswith(".dir") and k != "all_overrides"
+        ]
 
     def fmt(v: Any) -> str:
         if v is None:
             return ""
-        return f"{v:.4g}" if isinstance(v, float) else str(v).replace("|", "\\|").replace("\n", " ")
+        return (
+            f"{v:.4g}"
+            if isinstance(v, float)
+            else str(v).replace("|", "\\|").replace("\n", " ")
+        )
 
     lines = [f"# {title}\n"] if title else []
     lines += ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
@@ -203,10 +234,18 @@ class MultirunSummary(Callback):
         best = max(ok, key=lambda r: r["objective"]) if ok else None
         summary: dict[str, Any] = {
             "sweep_dir": str(sweep_dir),
-            "objective": {"metric": metric or "auto", "direction": DIRECTION,
-                          "auto_order": [f"{s}.{m}" for s, m in AUTO_OBJECTIVES]},
-            "best": None if best is None else {"job": best["job"], "objective": best["objective"],
-                                               "overrides": best["overrides"]},
+            "objective": {
+                "metric": metric or "auto",
+                "direction": DIRECTION,
+                "auto_order": [f"{s}.{m}" for s, m in AUTO_OBJECTIVES],
+            },
+            "best": None
+            if best is None
+            else {
+                "job": best["job"],
+                "objective": best["objective"],
+                "overrides": best["overrides"],
+            },
             "jobs": rows,
         }
         optuna_file = sweep_dir / "optimization_results.yaml"
@@ -215,11 +254,22 @@ class MultirunSummary(Callback):
         atomic_write_json(sweep_dir / "summary.json", summary)
         text = markdown_table(rows, title=f"Sweep {sweep_dir.name}: {len(rows)} jobs")
         text += f"\nObjective: {metric or 'auto'} ({DIRECTION}; auto = "
-        text += " if present, else ".join(f"{s}.{m}" for s, m in AUTO_OBJECTIVES) + ").\n"
+        text += (
+            " if present, else ".join(f"{s}.{m}" for s, m in AUTO_OBJECTIVES) + ").\n"
+        )
         if best is not None:
             text += f"Best: job {best['job']} ({best['overrides'] or 'single job'}) objective {best['objective']:.4g}.\n"
-        common = sorted(set.intersection(*(set(r["all_overrides"]) for r in rows))) if len(rows) > 1 else []
+        common = (
+            sorted(set.intersection(*(set(r["all_overrides"]) for r in rows)))
+            if len(rows) > 1
+            else []
+        )
         if common:
             text += "\nShared overrides: `" + " ".join(common) + "`\n"
         atomic_write_text(sweep_dir / "summary.md", text)
-        log.info("multirun summary (%d jobs) -> %s\n%s", len(rows), sweep_dir / "summary.md", text)
+        log.info(
+            "multirun summary (%d jobs) -> %s\n%s",
+            len(rows),
+            sweep_dir / "summary.md",
+            text,
+        )

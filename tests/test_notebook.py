@@ -18,14 +18,22 @@ def _kernel_name() -> str:
     """The notebook's kernel if installed, else any Python kernel; skip only when none exists."""
     from jupyter_client.kernelspec import KernelSpecManager
 
-    specs = KernelSpecManager().find_kernel_specs()  # includes ipykernel's own python3 when importable
+    specs = (
+        KernelSpecManager().find_kernel_specs()
+    )  # includes ipykernel's own python3 when importable
     if not specs:
-        pytest.skip("no Jupyter kernel found: pip install ipykernel && python -m ipykernel install --user")
-    return "python3" if "python3" in specs else sorted(specs)[0]
+        pytest.skip(
+            "no Jupyter kernel found: pip install ipykernel && python -m ipykernel install --user"
+        )
+    return "python3" if "python3" in specs else min(specs)
 
 
 def _parameters_cell(nb) -> int:
-    idx = [i for i, c in enumerate(nb.cells) if "parameters" in c.get("metadata", {}).get("tags", [])]
+    idx = [
+        i
+        for i, c in enumerate(nb.cells)
+        if "parameters" in c.get("metadata", {}).get("tags", [])
+    ]
     assert idx == [0], "the first cell must be the only one tagged 'parameters'"
     return idx[0]
 
@@ -38,9 +46,16 @@ def test_notebook_structure():
         assert f"{name} =" in src
     assert 'GUIDANCE = "toy"' in src  # runs anywhere by default
     text = "\n".join(c.source for c in nb.cells)
-    assert "initialize_config_dir" in text and "from nerfart_plugin.pipeline import Pipeline" in text
-    assert "render_meshes" in text and 'GUIDANCE = "clip"' in text  # the markdown says how to switch
-    assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), "commit the notebook without outputs"
+    assert (
+        "initialize_config_dir" in text
+        and "from nerfart_plugin.pipeline import Pipeline" in text
+    )
+    assert (
+        "render_meshes" in text and 'GUIDANCE = "clip"' in text
+    )  # the markdown says how to switch
+    assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code"), (
+        "commit the notebook without outputs"
+    )
 
 
 def _images(nb) -> int:
@@ -58,31 +73,48 @@ def _images(nb) -> int:
 def test_notebook_executes(tmp_path):
     nb = nbformat.read(NOTEBOOK, as_version=4)
     out = tmp_path / "out"
-    nb.cells[_parameters_cell(nb)].source = "\n".join([
-        f"OUTPUT_ROOT = {str(out)!r}",
-        "DATA_PATH = None",
-        'PROMPT = "red, Fauvism"',  # a comma: must not be split by Hydra's override parser
-        'GUIDANCE = "toy"',
-        'BACKBONE = "volsdf"',
-        'DEVICE = "cpu"',
-        "OVERRIDES = ['data.resolution=24', 'reconstruct.steps=10', 'reconstruct.val_every=10',",
-        "             'reconstruct.batch_rays=128', 'render.num_samples=8', 'render.occupancy.enabled=false',",
-        "             'stylize.steps=2', 'stylize.resolution=24', 'stylize.video_frames=2', 'export.resolution=24']",
-        "SCREENSHOT_SIZE = (240, 120)",
-    ])
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name=_kernel_name(),
-                                     resources={"metadata": {"path": str(tmp_path)}})
+    nb.cells[_parameters_cell(nb)].source = "\n".join(
+        [
+            f"OUTPUT_ROOT = {str(out)!r}",
+            "DATA_PATH = None",
+            'PROMPT = "red, Fauvism"',  # a comma: must not be split by Hydra's override parser
+            'GUIDANCE = "toy"',
+            'BACKBONE = "volsdf"',
+            'DEVICE = "cpu"',
+            "OVERRIDES = ['data.resolution=24', 'reconstruct.steps=10', 'reconstruct.val_every=10',",
+            "             'reconstruct.batch_rays=128', 'render.num_samples=8', 'render.occupancy.enabled=false',",
+            "             'stylize.steps=2', 'stylize.resolution=24', 'stylize.video_frames=2', 'export.resolution=24']",
+            "SCREENSHOT_SIZE = (240, 120)",
+        ]
+    )
+    client = nbclient.NotebookClient(
+        nb,
+        timeout=600,
+        kernel_name=_kernel_name(),
+        resources={"metadata": {"path": str(tmp_path)}},
+    )
     client.execute()
-    errors = [o for c in nb.cells for o in c.get("outputs", []) if o.get("output_type") == "error"]
+    errors = [
+        o
+        for c in nb.cells
+        for o in c.get("outputs", [])
+        if o.get("output_type") == "error"
+    ]
     assert not errors, errors
     recon = list((out / "reconstructions").iterdir())
     styl = list((out / "stylizations").iterdir())
     assert len(recon) == 1 and len(styl) == 1
-    assert styl[0].name.startswith("red_Fauvism-volsdf-") and styl[0].name.endswith("_UNSTYLED-toy")
-    assert (recon[0] / "final.ckpt").is_file() and (recon[0] / "mesh" / "source.ply").is_file()
+    assert styl[0].name.startswith("red_Fauvism-volsdf-") and styl[0].name.endswith(
+        "_UNSTYLED-toy"
+    )
+    assert (recon[0] / "final.ckpt").is_file() and (
+        recon[0] / "mesh" / "source.ply"
+    ).is_file()
     assert (styl[0] / "mesh" / "source.ply").is_file()
     assert len(list((styl[0] / "mesh").glob("stylized*.ply"))) == 1
-    assert list((styl[0] / "renders").glob("*.png")) and list(styl[0].glob("video*.mp4"))
+    assert list((styl[0] / "renders").glob("*.png")) and list(
+        styl[0].glob("video*.mp4")
+    )
     assert (styl[0] / "video_frames.png").is_file()
     shot = out / "notebook_meshes.png"
     assert shot.is_file()
