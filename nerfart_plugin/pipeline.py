@@ -63,6 +63,14 @@ def validate_config(c: dict) -> None:
     registry.get("backbone", c["backbone"]["name"])
     registry.get("encoding", c["encoding"]["name"])
     registry.get("data", c["data"]["kind"])
+    tc = c.get("trainer", {})
+    distributed = tc.get("strategy", "auto") not in ("auto", None) or int(tc.get("num_nodes", 1)) != 1 \
+        or tc.get("devices", 1) not in (1, "1")
+    if distributed and c["stage"] != "reconstruct":
+        raise ConfigError("Multi-device training (trainer.strategy/devices/num_nodes) is supported for "
+                          "stage=reconstruct only: the stylization stage optimizes one view per step with several "
+                          "backward passes (Section 4.4) on one device. Run stage=reconstruct with DDP, then "
+                          "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1.")
     if c["stage"] in ("stylize", "all"):
         registry.get("guidance", c["guidance"]["name"])
         from nerfart_plugin.guidance import validate_prompt
@@ -73,18 +81,22 @@ def validate_config(c: dict) -> None:
         validate_prompt(c["prompt"])
 
 
-def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: list, precision: str,
-             log_every: int, **kw: Any) -> L.Trainer:
+def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: list, tc: dict, **kw: Any) -> L.Trainer:
+    """A Trainer for one stage; ``tc`` is the ``trainer`` config (precision, log_every_n_steps,
+    strategy/devices/num_nodes for Lightning DDP)."""
     from lightning.pytorch.callbacks import TQDMProgressBar
     from lightning.pytorch.loggers import CSVLogger
 
     accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
-    devices = [device.index] if device.type == "cuda" and device.index is not None else 1
+    devices: Any = tc.get("devices", 1)
+    if device.type == "cuda" and device.index is not None and devices == 1:
+        devices = [device.index]
     return L.Trainer(
-        max_steps=max_steps, accelerator=accelerator, devices=devices, precision=precision,
+        max_steps=max_steps, accelerator=accelerator, devices=devices, precision=tc.get("precision", "32-true"),
+        strategy=tc.get("strategy", "auto"), num_nodes=int(tc.get("num_nodes", 1)), log_every_n_steps=int(tc.get("log_every_n_steps", 10)),
         logger=CSVLogger(str(run_dir), name="logs"), callbacks=[*callbacks, TQDMProgressBar(refresh_rate=10)],
         enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
-        log_every_n_steps=log_every, default_root_dir=str(run_dir), **kw,
+        default_root_dir=str(run_dir), **kw,
     )
 
 
@@ -179,8 +191,7 @@ class Pipeline:
         system = ReconstructionSystem(rc, *self._components(), self.setup, train_rays=self.dm.train_rays,
                                       seed=self.c["seed"], out_dir=str(run_dir))
         ckpt = AtomicCheckpoint(run_dir, rc.get("checkpoint_every", 100))
-        trainer = _trainer(run_dir, int(rc["steps"]), self.device, [ckpt, FiniteGradientGuard()],
-                           self.c["trainer"]["precision"], self.c["trainer"]["log_every_n_steps"],
+        trainer = _trainer(run_dir, int(rc["steps"]), self.device, [ckpt, FiniteGradientGuard()], self.c["trainer"],
                            val_check_interval=int(rc.get("val_every", 500)), check_val_every_n_epoch=None,
                            limit_val_batches=int(rc.get("val_views", 2)) or 1.0)
         last = run_dir / "last.ckpt"
@@ -190,6 +201,8 @@ class Pipeline:
         t0 = time.perf_counter()
         self._fit(trainer, system, val=self.dm.val_dataloader(), ckpt_path=ckpt_path)
         seconds = time.perf_counter() - t0
+        if trainer.global_rank != 0:  # DDP: evaluation and outputs on rank 0 only
+            return final
         metrics = self.evaluate_reconstruction(system)
         metrics.update({"train_seconds_this_process": seconds, "steps": int(trainer.global_step),
                         "scene_setup": self.setup.to_dict(), "notes": self.scene.notes,
@@ -264,8 +277,7 @@ class Pipeline:
                                    self.guidance, self.perceptual, self.prompt, src_prompt, load_negatives(),
                                    seed=self.c["seed"], out_dir=str(run_dir), stamp=self.stamp)
         ckpt = AtomicCheckpoint(run_dir, sc.get("checkpoint_every", 10))
-        trainer = _trainer(run_dir, int(sc["steps"]), self.device, [ckpt], self.c["trainer"]["precision"],
-                           self.c["trainer"]["log_every_n_steps"], limit_val_batches=0)
+        trainer = _trainer(run_dir, int(sc["steps"]), self.device, [ckpt], self.c["trainer"], limit_val_batches=0)
         last = run_dir / "last.ckpt"
         if last.exists():
             log.info("resuming the stylization from %s", last)

@@ -48,3 +48,23 @@ def test_presets_order_by_cost() -> None:
 
 def test_command_line_beats_preset() -> None:
     assert _compose("preset=paper", "render.num_samples=7").render.num_samples == 7
+
+
+def test_ddp_settings_reach_the_trainer_and_stylize_refuses_them() -> None:
+    from nerfart_plugin.errors import ConfigError
+    from nerfart_plugin.pipeline import _container, validate_config
+
+    cfg = _compose("stage=reconstruct", "trainer.strategy=ddp", "trainer.devices=4", "trainer.num_nodes=2")
+    validate_config(_container(cfg))  # allowed for the reconstruction stage
+    with pytest.raises(ConfigError, match="stage=reconstruct only"):
+        validate_config(_container(_compose("stage=all", "prompt=Joker", "trainer.strategy=ddp")))
+
+
+def test_trainer_gets_strategy_devices_nodes(tmp_path) -> None:
+    import torch
+
+    from nerfart_plugin.pipeline import _trainer
+
+    t = _trainer(tmp_path, 3, torch.device("cpu"), [], {"strategy": "auto", "devices": 1, "num_nodes": 1,
+                                                           "precision": "32-true", "log_every_n_steps": 1})
+    assert t.max_steps == 3 and t.num_nodes == 1 and t.world_size == 1

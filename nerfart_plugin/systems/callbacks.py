@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -33,8 +34,15 @@ class AtomicCheckpoint(L.Callback):
 
     def save(self, trainer: L.Trainer) -> Path:
         path = self.dirpath / LAST
-        with atomic_path(path) as tmp:
+        if trainer.world_size == 1:
+            with atomic_path(path) as tmp:
+                trainer.save_checkpoint(tmp)
+        else:  # DDP: every rank joins save_checkpoint (rank 0 writes), rank 0 renames
+            tmp = self.dirpath / f".{LAST}.step{trainer.global_step}.tmp"
             trainer.save_checkpoint(tmp)
+            if trainer.is_global_zero:
+                os.replace(tmp, path)
+            trainer.strategy.barrier("atomic_checkpoint")
         self._last_saved = trainer.global_step
         log.debug("checkpoint at step %d -> %s", trainer.global_step, path)
         return path

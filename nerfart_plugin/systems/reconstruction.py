@@ -56,7 +56,8 @@ class ReconstructionSystem(RenderSystem):
     def sample_batch(self, step: int) -> dict[str, torch.Tensor]:
         """``batch_rays`` random training rays for ``step`` (a function of (seed, step) only)."""
         assert self.train_rays is not None, "ReconstructionSystem needs train_rays to train"
-        g = torch.Generator().manual_seed(step_seed(self.seed, step))
+        # DDP: each rank draws its own rays (rank 0 draws what a single-device run draws)
+        g = torch.Generator().manual_seed(step_seed(self.seed + 1_000_033 * self.global_rank, step))
         n = self.train_rays["rays_o"].shape[0]
         idx = torch.randint(0, n, (int(self.cfg.get("batch_rays", 1024)),), generator=g)
         return to_device({k: v[idx] for k, v in self.train_rays.items() if torch.is_tensor(v)}, self.device)
