@@ -89,5 +89,5 @@ def test_occupancy_band_follows_surface_width() -> None:
     dirs = torch.nn.functional.normalize(torch.randn(200, 3), dim=-1)
     assert grid.query(0.75 * dirs).float().mean() > 0.9  # 0.25 from the surface: inside the widened band
     with torch.no_grad():
-        field.beta_param.fill_(1e-4)
+        field.beta_param.fill_(-30.0)
     assert grid.band(field) == pytest.approx(grid.sdf_band)  # sharp surface: one cell diagonal

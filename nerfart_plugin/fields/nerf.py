@@ -53,6 +53,11 @@ class NeRFField(Field):
     (trunc_exp) or softplus(-1) = 0.31: a faint uniform fog (over a ray of
     length 2 the transmittance is ~0.5), which gives every sample a gradient
     from the first step without occluding anything.
+
+    ``input_xyz`` (default True): the geometry net also sees ``x / bound``
+    (besides the encoding). A freshly initialised grid gives near-constant,
+    ~0.01-sized features, so without it the field starts as a uniform grey fog
+    and waits ~30-50 steps for the grid to grow before it can vary in space.
     """
 
     is_sdf = False
@@ -65,6 +70,7 @@ class NeRFField(Field):
         density_activation: str = "trunc_exp",
         density_bias: float = -1.0,
         mesh_level: float = 10.0,
+        input_xyz: bool = True,
         **kw: Any,
     ) -> None:
         super().__init__(encoding_cfg, bound, **kw)
@@ -75,11 +81,19 @@ class NeRFField(Field):
         self.density_activation = density_activation
         self.density_bias = float(density_bias)
         self.mesh_level = float(mesh_level)
-        self.geo_net = make_mlp(self.encoding.n_output_dims, self.hidden_dim, 1 + self.feature_dim, self.n_layers)
+        self.input_xyz = bool(input_xyz)
+        in_dim = self.encoding.n_output_dims + 3 * int(self.input_xyz)
+        self.geo_net = make_mlp(in_dim, self.hidden_dim, 1 + self.feature_dim, self.n_layers)
         with torch.no_grad():  # start with raw density ~ 0 (see class docstring)
             self.geo_net[-1].weight[:1].mul_(0.1)
             self.geo_net[-1].bias[:1].zero_()
         self.color_net = make_mlp(self.feature_dim + self.dir_encoding.n_output_dims, self.color_hidden_dim, 3, self.color_layers)
+
+    def _geo(self, x: Tensor) -> Tensor:
+        enc = self.encoding(x)
+        if self.input_xyz:
+            enc = torch.cat([(x / self.bound).to(enc.dtype), enc], dim=-1)
+        return self.geo_net(enc)
 
     def _density(self, raw: Tensor) -> Tensor:
         raw = raw.float() + self.density_bias
@@ -87,11 +101,11 @@ class NeRFField(Field):
 
     def geometry(self, x: Tensor) -> Tensor:
         """Density sigma [N] >= 0 (1/world units)."""
-        return self._density(self.geo_net(self.encoding(x))[..., 0])
+        return self._density(self._geo(x)[..., 0])
 
     def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
         """x [N,3], d [N,3] unit -> ``rgb`` [N,3] in [0,1], ``sigma`` [N] >= 0."""
-        h = self.geo_net(self.encoding(x))
+        h = self._geo(x)
         sigma = self._density(h[..., 0])
         rgb = self._color([h[..., 1:]], d)
         return {"rgb": rgb, "sigma": sigma}

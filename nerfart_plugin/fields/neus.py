@@ -28,17 +28,23 @@ class NeuSField(SDFField):
     ("gradient", default: the reference code's mid-point estimate from
     ``dot(d, grad sdf)``; "sections": NeuS Eq. 13 on the SDF at consecutive
     samples, which needs no gradient, so ``grad_samples < 1`` can skip most of
-    the gradient cost; cos-annealing does not apply).
+    the gradient cost; cos-annealing does not apply), ``variance_lr_scale``
+    (default 1.0: the stored parameter is ``variance / variance_lr_scale``, so
+    Adam moves the variance that many times slower or faster than the other
+    MLP parameters; NeuS trains it at the network rate 5e-4, so with a larger
+    ``lr_mlp`` use e.g. 0.2 to keep inv_s from sharpening before the shape forms).
     """
 
     def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0, init_variance: float = 0.3,
-                 inv_s_max: float = 1e5, anneal_steps: int = 0, alpha_mode: str = "gradient", **kw: Any) -> None:
+                 inv_s_max: float = 1e5, anneal_steps: int = 0, alpha_mode: str = "gradient",
+                 variance_lr_scale: float = 1.0, **kw: Any) -> None:
         if alpha_mode not in ("gradient", "sections"):
             raise ConfigError(f"backbone neus: alpha_mode={alpha_mode!r}; use 'gradient' or 'sections'.")
         self.alpha_needs_gradient = alpha_mode == "gradient"
         super().__init__(encoding_cfg, bound, **kw)
         self.alpha_mode = alpha_mode
-        self.variance = nn.Parameter(torch.tensor(float(init_variance)))
+        self.variance_lr_scale = float(variance_lr_scale)
+        self.variance = nn.Parameter(torch.tensor(float(init_variance) / self.variance_lr_scale))
         self.inv_s_max = float(inv_s_max)
         self.anneal_steps = int(anneal_steps)
         self.cos_anneal_ratio = 1.0 if self.anneal_steps <= 0 else 0.0
@@ -46,7 +52,7 @@ class NeuSField(SDFField):
     @property
     def inv_s(self) -> Tensor:
         """Logistic sharpness ``exp(10 variance)`` clamped to [1, inv_s_max]."""
-        return torch.exp(self.variance * 10.0).clamp(1.0, self.inv_s_max)
+        return torch.exp(self.variance * (10.0 * self.variance_lr_scale)).clamp(1.0, self.inv_s_max)
 
     def surface_width(self) -> float:
         """1 / inv_s (world units): the scale of the logistic density around the surface."""

@@ -37,7 +37,8 @@ class VolumeRenderer(nn.Module):
             remaining transmittance shows black). A batch may override it per
             ray with ``batch["bg_color"]`` ([R,3] or [3]), e.g. random
             backgrounds for masked training.
-        num_coarse: coarse occupancy queries per ray for occupancy sampling.
+        num_coarse: coarse occupancy queries per ray for occupancy sampling
+            (default: twice the occupancy grid resolution).
         clip_to_bound: restrict [near, far] to the ray's intersection with the
             field's box [-bound, bound]^3 (rays that miss it get zero-length
             sections and render the background).
@@ -52,7 +53,7 @@ class VolumeRenderer(nn.Module):
         background: Optional[nn.Module] = None,
         occupancy: Optional[OccupancyGrid] = None,
         background_color: Optional[Sequence[float]] = (1.0, 1.0, 1.0),
-        num_coarse: int = 256,
+        num_coarse: Optional[int] = None,
         clip_to_bound: bool = True,
         compact: bool = True,
     ) -> None:
@@ -62,6 +63,8 @@ class VolumeRenderer(nn.Module):
         self.num_samples = int(num_samples)
         self.background = background
         self.occupancy = occupancy
+        if num_coarse is None:  # ~2 bins per cell crossed: with the sampler's 1-bin dilation no cell is missed
+            num_coarse = 2 * occupancy.resolution if occupancy is not None else 256
         self.num_coarse = int(num_coarse)
         self.clip_to_bound = bool(clip_to_bound)
         if background_color is None:
