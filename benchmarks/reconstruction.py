@@ -315,7 +315,7 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
                 body.append(f"- {scene} / {bb} ({m}): {pts}")
     if fig is not None:
         body += ["", f"![PSNR vs time]({common.rel(fig, out.parent)})"]
-    return common.section(NAME, "Reconstruction: held-out PSNR versus wall time", common.command(NAME + ".py", argv),
+    return common.section(args.section, "Reconstruction: held-out PSNR versus wall time (" + ", ".join(args.scenes) + ")", common.command(NAME + ".py", argv),
                           info, body, args.quick)
 
 
@@ -334,6 +334,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="intermediate checkpoints use every N-th pixel row/column (default: head 1, fern 4)")
     p.add_argument("--fixed-schedule", action="store_true", help="schedule LR/anneal over reconstruct.steps")
     p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    p.add_argument("--section", default=NAME, help="name of the BENCHMARKS.md section to write (default: reconstruction)")
     common.add_common_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -375,18 +376,18 @@ def main(argv: list[str] | None = None) -> int:
                 log.exception("run failed")
                 results[scene][bb] = {"error": f"{type(exc).__name__}: {exc}"}
         del pipe
-    fig = figs / "reconstruction.png"
+    fig = figs / f"{args.section}.png"
     try:
         plot(results, specs, fig)
     except Exception as exc:  # noqa: BLE001
         log.warning("no plot: %s", exc)
         fig = None
-    raw = out.parent / "outputs" / "benchmarks" / f"{NAME}{'.quick' if args.quick else ''}.json" \
-        if out.parent == ROOT else out.parent / f"{NAME}.json"
+    raw = out.parent / "outputs" / "benchmarks" / f"{args.section}{'.quick' if args.quick else ''}.json" \
+        if out.parent == ROOT else out.parent / f"{args.section}.json"
     raw.parent.mkdir(parents=True, exist_ok=True)
     raw.write_text(json.dumps({"args": vars(args) | {"out": str(out), "figures": str(figs)}, "results": results},
                               default=str, indent=1))
-    common.finish(args, NAME, report(results, specs, args, argv, info, fig, out, extra))
+    common.finish(args, args.section, report(results, specs, args, argv, info, fig, out, extra))
     return 0
 
 
