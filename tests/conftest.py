@@ -32,12 +32,13 @@ def _seed() -> None:
 
 @pytest.fixture(autouse=True)
 def _project_loggers_propagate():
-    """In-process Hydra/Lightning/benchmark runs reconfigure logging (dictConfig may disable
-    existing loggers or stop propagation); keep the project's loggers visible to caplog."""
+    """In-process Hydra/Lightning/benchmark runs reconfigure logging (benchmarks raise the project's
+    level to ERROR, dictConfig may disable loggers); keep the project's loggers visible to caplog."""
     import logging
 
     for name, lg in list(logging.root.manager.loggerDict.items()):
         if isinstance(lg, logging.Logger) and name.split(".")[0] == "nerfart_plugin":
             lg.disabled = False
             lg.propagate = True
+            lg.setLevel(logging.NOTSET)
     yield
