@@ -276,11 +276,18 @@ def plot(results: dict, specs: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _defaults_text() -> str:
+    """The sampling settings of the default config, as composed now (not hard-coded)."""
+    c = common.compose([])
+    return (f"{c['encoding']['name']} encoding, {c['render']['num_samples']} samples/ray, occupancy grid "
+            f"{c['render']['occupancy']['resolution']}^3, {c['reconstruct']['batch_rays']} rays/step")
+
+
 def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str], info: dict, fig: Optional[Path],
            out: Path, extra: list[str]) -> str:
     body = [
-        "Held-out PSNR versus training wall time, one backbone at a time, default config (preset balanced: grid "
-        "encoding, 64 samples/ray, occupancy grid, 1024 rays/step" + (", plus " + " ".join(extra) if extra else "")
+        "Held-out PSNR versus training wall time, one backbone at a time, default config (preset balanced: "
+        + _defaults_text() + (", plus " + " ".join(extra) if extra else "")
         + "). Time is training only: the held-out evaluations at the checkpoints are excluded. "
         f"Intermediate checkpoints (curves) render {'all' if args.eval_views <= 0 else args.eval_views} held-out "
         "view(s), on every N-th pixel row and column ("

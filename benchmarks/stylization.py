@@ -19,8 +19,8 @@ score) or ``--guidance clip`` (needs the CLIP/VGG weights; real scores and times
 
 The source field is a freshly initialised reconstruction unless
 ``--source-checkpoint`` names a ``final.ckpt`` of a head reconstruction with the same
-backbone/encoding (the cost per step does not depend on the weights: every ray
-gets ``render.num_samples`` samples).
+backbone/encoding. A fresh field's occupancy grid is fully occupied, so every ray gets
+every sample: an upper bound of the per-step cost (a trained field skips empty sections).
 
     python benchmarks/stylization.py
     python benchmarks/stylization.py --guidance clip --source-checkpoint outputs/reconstructions/.../final.ckpt
@@ -259,7 +259,8 @@ def main(argv: list[str] | None = None) -> int:
         "OpenAI / ImageNet weights, which cannot be downloaded here)"
         + (" — **--tiny-clip: a 1-layer test CLIP, NOT ViT-B/32 (tests only)**" if tiny else "") + ". Source field: "
         + ("`" + str(args.source_checkpoint) + "`." if args.source_checkpoint else
-           "freshly initialised (cost per step does not depend on the weights)."),
+           "freshly initialised: its occupancy grid is fully occupied, so every ray gets every sample; a "
+           "trained field skips empty sections, so this is an upper bound of the per-step cost."),
         "",
         "### Part 1: one step versus one CLIP forward+backward",
         "",
