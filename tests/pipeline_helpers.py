@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
 from hydra import compose, initialize_config_dir
@@ -34,3 +36,13 @@ def tiny_cfg(out: Path, data_path: Path, *overrides: str) -> DictConfig:
 
 def cli_args(out: Path, data_path: Path, *overrides: str) -> list[str]:
     return [f"output_root={out}", f"data.path={data_path}", *TINY, *overrides, f"hydra.run.dir={out}/hydra"]
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_cli(args: list[str], timeout: int = 600, cwd: Path | None = None,
+            env: dict | None = None) -> subprocess.CompletedProcess:
+    """``python -m nerfart_plugin ARGS`` in a subprocess (from the repo root by default), output captured."""
+    return subprocess.run([sys.executable, "-m", "nerfart_plugin", *args], cwd=cwd or REPO, env=env,
+                          capture_output=True, text=True, timeout=timeout, check=False)

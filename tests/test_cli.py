@@ -15,19 +15,14 @@ import yaml
 from nerfart_plugin.__main__ import normalize_overrides
 from nerfart_plugin.config_paths import config_dir, group_options, primary_keys
 
+from pipeline_helpers import run_cli
+
 REPO = Path(__file__).resolve().parents[1]
 GROUPS = ("backbone", "data", "encoding", "experiment", "guidance", "preset")
 
 
 def _cli(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        check=False,
-        args=[sys.executable, "-m", "nerfart_plugin", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_cli(list(args), timeout=timeout)
 
 
 def _job_cfg(*args: str) -> dict:
@@ -249,23 +244,7 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
         Path(pkg_file).is_relative_to(target)
         and Path(conf) == target / "nerfart_plugin" / "conf"
     )
-    proc = subprocess.run(
-        check=False,
-        args=[
-            sys.executable,
-            "-m",
-            "nerfart_plugin",
-            "--cfg",
-            "job",
-            "+backbone=neus",
-            "+prompt=Joker",
-        ],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    proc = run_cli(["--cfg", "job", "+backbone=neus", "+prompt=Joker"], timeout=300, cwd=tmp_path, env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     cfg = yaml.safe_load(proc.stdout)
     assert cfg["backbone"]["name"] == "neus" and cfg["prompt"] == "Joker"

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
@@ -14,6 +12,7 @@ from omegaconf import OmegaConf
 from nerfart_plugin.config_paths import config_dir
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.sweep import collect, complete_results, markdown_table, objective
+from pipeline_helpers import run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -34,15 +33,7 @@ TINY = [
 ]
 
 
-def _cli(args: list[str], timeout: int = 600) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        check=False,
-        args=[sys.executable, "-m", "nerfart_plugin", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+_cli = run_cli
 
 
 # ---------------------------------------------------------------------- objective
