@@ -51,6 +51,14 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
+def pinned_cpus() -> Optional[list[int]]:
+    """The CPUs this process is restricted to (``taskset``), or None when it may use all of them."""
+    if not hasattr(os, "sched_getaffinity"):
+        return None
+    cpus = sorted(os.sched_getaffinity(0))
+    return cpus if len(cpus) < (os.cpu_count() or len(cpus)) else None
+
+
 def machine_info() -> dict[str, Any]:
     """What the section header states; call it at the START of a benchmark (load average then)."""
     import torch
@@ -70,6 +78,8 @@ def machine_info() -> dict[str, Any]:
         "date": _dt.datetime.now().astimezone().strftime("%Y-%m-%d %H:%M %Z"),
         "loadavg": os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3,
         "t0": time.perf_counter(),
+        "pinned": pinned_cpus(),
+        "cpu_count": os.cpu_count(),
     }
 
 
@@ -77,7 +87,9 @@ def machine_line(info: dict[str, Any]) -> str:
     la = info["loadavg"]
     gpu = f"GPU {info['cuda']}; " if info.get("cuda") else "CPU only; "
     total = time.perf_counter() - info["t0"]
-    return (f"Machine: {info['nproc']} CPUs (nproc), {info['cpu']}, {info['ram_gib']:.0f} GiB RAM; {gpu}"
+    pin = (f" — this run was pinned with `taskset` to CPU {','.join(map(str, info['pinned']))} of "
+           f"{info['cpu_count']}, so timings are single-core" if info.get("pinned") else "")
+    return (f"Machine: {info['nproc']} CPUs (nproc{pin}), {info['cpu']}, {info['ram_gib']:.0f} GiB RAM; {gpu}"
             f"torch {info['torch']}, {info['threads']} torch threads; Python {info['python']}. "
             f"Run {info['date']}, total {total:.0f} s; load average at start {la[0]:.2f} / {la[1]:.2f} / {la[2]:.2f} "
             f"(1/5/15 min). Shared machine: timings are noisy.")
@@ -89,8 +101,10 @@ def markers(name: str) -> tuple[str, str]:
 
 
 def command(script: str, argv: Sequence[str]) -> str:
-    """The exact command to reproduce, from the repository root."""
-    return " ".join(["python", f"benchmarks/{script}", *(shlex.quote(a) for a in argv)])
+    """The exact command to reproduce, from the repository root (with the ``taskset`` pinning it ran under)."""
+    cpus = pinned_cpus()
+    pin = ["taskset", "-c", ",".join(map(str, cpus))] if cpus else []
+    return " ".join([*pin, "python", f"benchmarks/{script}", *(shlex.quote(a) for a in argv)])
 
 
 def section(name: str, title: str, cmd: str, info: dict[str, Any], body: list[str], quick: bool) -> str:

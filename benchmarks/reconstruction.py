@@ -176,7 +176,7 @@ def train_one(p, overrides: list[str], budget: float, checkpoints: list[float], 
         use = views if final else quick_views
         per = []
         for b in use:
-            img = module.render_view(b, chunk=chunk)
+            img = module.render_view(b, chunk=chunk, with_normals=False)  # PSNR/SSIM need colour only
             per.append(view_metrics(img["rgb"], b["rgb"].reshape(img["rgb"].shape).to(img["rgb"].device),
                                     b.get("mask")))
         keys = sorted(set().union(*per))

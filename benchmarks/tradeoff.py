@@ -109,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
 
     scenes: dict[tuple, Any] = {}
     results: list[dict[str, Any]] = []
+    raw = (common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks") / f"{NAME}.json"
+    raw.parent.mkdir(parents=True, exist_ok=True)
     for cfg in configs:
         ov = ["data=h3ds", *cfg["overrides"], *extra]
         # the loaded scene depends on the data settings only (train_one decides the setup per run)
@@ -126,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
         except Exception as exc:  # noqa: BLE001 - one failed configuration must not lose the others
             log.exception("run failed")
             results.append({**cfg, "label": name, "error": f"{type(exc).__name__}: {exc}"})
+        raw.write_text(json.dumps(results, indent=1, default=str))  # partial results survive a crash
 
     metric = "psnr_masked"
     pts, owner = [], []
@@ -207,9 +210,6 @@ def main(argv: list[str] | None = None) -> int:
         body += ["", "Presets: " + "; ".join(f"**{results[i]['preset']}** {standing(i)}" for i in pres) + "."]
     if fig is not None:
         body += ["", f"![PSNR vs time, Pareto front]({common.rel(fig, out.parent)})"]
-    raw = (common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks") / f"{NAME}.json"
-    raw.parent.mkdir(parents=True, exist_ok=True)
-    raw.write_text(json.dumps(results, indent=1, default=str))
     text = common.section(NAME, "Trade-off: reconstruction quality versus time (head)", common.command(NAME + ".py", argv),
                           info, body, q)
     common.finish(args, NAME, text)

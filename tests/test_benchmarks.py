@@ -50,8 +50,9 @@ def _check_common(text: str, name: str, cmd_part: str) -> str:
     assert "intro" in text and "keep me" in text, "other sections must be preserved"
     sec = _section(text, name)
     assert "QUICK smoke run" in sec, "quick results must be labelled"
-    assert f"`python benchmarks/{name}.py" in sec and cmd_part in sec
-    assert re.search(r"Machine: \d+ CPUs \(nproc\), .*torch .*load average at start [\d.]+", sec)
+    # the command to reproduce, with the taskset pinning when the run was pinned to some CPUs
+    assert re.search(rf"`(taskset -c [0-9,]+ )?python benchmarks/{name}\.py", sec) and cmd_part in sec
+    assert re.search(r"Machine: \d+ CPUs \(nproc[^)]*\), .*torch .*load average at start [\d.]+", sec)
     return sec
 
 
@@ -109,7 +110,8 @@ def test_stylization_quick(out: Path) -> None:
 
 def test_scene_setup_quick(out: Path) -> None:
     mod = _load("scene_setup")
-    assert mod.main(["--quick", "--variants", "no occupancy", "--steps", "2", "--out", str(out)]) == 0
-    sec = _check_common(out.read_text(), "scene_setup", "--variants 'no occupancy'")
+    assert mod.main(["--quick", "--variants", "auto", "occupancy flipped", "--steps", "2", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "scene_setup", "--variants auto 'occupancy flipped'")
     rows = _table_rows(sec)
-    assert len(rows) == 1 and "error" not in rows[0] and "occ off" in rows[0]
+    assert len(rows) == 2 and not any("error" in r for r in rows)
+    assert "occ 16^3" in rows[0] and "occ off" in rows[1]  # the head: auto keeps the grid, flipped drops it

@@ -91,3 +91,40 @@ def test_occupancy_band_follows_surface_width() -> None:
     with torch.no_grad():
         field.beta_param.fill_(-30.0)
     assert grid.band(field) == pytest.approx(grid.sdf_band)  # sharp surface: one cell diagonal
+
+
+@pytest.mark.parametrize("backbone,extra,skips", [
+    ("volsdf", {}, True),
+    ("neus", {"alpha_mode": "sections"}, True),
+    ("neus", {"alpha_mode": "gradient"}, False),  # alpha reads the gradient: must keep it
+    ("volsdf", {"color_normal": True}, False),  # colour reads the normal: must keep it
+    ("nerf", {}, True),
+])
+def test_colour_only_render_skips_normals_and_matches(backbone: str, extra: dict, skips: bool) -> None:
+    """Pass 1 of stylization renders colour only: SDF fields skip the 4 gradient taps where nothing
+    reads them, and the image equals the full render (sdf at x vs the mean of the taps: O(h^2))."""
+    torch.manual_seed(0)
+    base = {"hidden_dim": 32} if backbone == "nerf" else FAST
+    field = build_field({"name": backbone, **base, **extra}, GRID)
+    r = VolumeRenderer(field, num_samples=16)
+    batch = _batch(24)
+    calls = []
+    hook = field.encoding.register_forward_hook(lambda m, i, o: calls.append(i[0].shape[0]))
+    with torch.no_grad():
+        full = r(batch)
+        n_full = sum(calls)
+        calls.clear()
+        fast = r(batch, with_normals=False)
+        n_fast = sum(calls)
+    hook.remove()
+    for k in ("rgb", "opacity", "depth"):
+        torch.testing.assert_close(fast[k], full[k], atol=1e-4, rtol=0)
+    if backbone == "nerf":
+        assert n_fast == n_full and "normal" not in fast
+    elif skips:
+        assert "normal" not in fast and n_fast * 4 == n_full  # one geometry evaluation per sample instead of 4
+    else:
+        assert "normal" in fast and n_fast == n_full
+    with torch.enable_grad():  # with grad the training path is unchanged (eikonal needs the gradient)
+        out = r(batch, with_normals=False)
+    assert "eikonal" in out or backbone == "nerf"

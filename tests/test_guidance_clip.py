@@ -11,6 +11,7 @@ import torch
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import CLIPGuidance, build_guidance
 from nerfart_plugin.guidance import weights as wts
+from nerfart_plugin.guidance import clip as clip_mod
 from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
 
 TINY_CFG = {
@@ -59,6 +60,52 @@ def test_random_clip_embeddings_and_gradients(tiny_clip: CLIPGuidance) -> None:
     assert torch.isfinite(emb).all() and (emb.norm(dim=-1) > 1e-6).all()
     emb.sum().backward()
     assert img.grad is not None and torch.isfinite(img.grad).all() and img.grad.abs().sum() > 0
+
+
+def test_encode_images_batches_view_and_patches_like_separate_calls(tiny_clip: CLIPGuidance) -> None:
+    """The stylization step encodes the whole view and its local patches in one network pass:
+    same embeddings and image gradients as encoding them one by one."""
+    torch.manual_seed(0)
+    view = torch.rand(1, 3, 96, 80, requires_grad=True)
+    patches = torch.nn.functional.interpolate(view[:, :, :32, :32], size=tiny_clip.input_size).expand(3, -1, -1, -1)
+    e_view, e_patch = tiny_clip.encode_images([view, patches])
+    assert e_view.shape == (1, tiny_clip.embed_dim) and e_patch.shape == (3, tiny_clip.embed_dim)
+    g_batched = torch.autograd.grad(e_view.sum() + e_patch.square().sum(), view)[0]
+    s_view, s_patch = tiny_clip.encode_image(view), tiny_clip.encode_image(patches)
+    torch.testing.assert_close(e_view, s_view, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(e_patch, s_patch, atol=1e-5, rtol=1e-4)
+    g_sep = torch.autograd.grad(s_view.sum() + s_patch.square().sum(), view)[0]
+    torch.testing.assert_close(g_batched, g_sep, atol=1e-6, rtol=1e-4)
+    with pytest.raises(ValueError, match="encode_images"):
+        tiny_clip.encode_images([torch.rand(3, 8, 8)])
+
+
+@pytest.mark.parametrize("precision", ["bf16", "auto"])
+def test_reduced_precision_matches_fp32(precision: str) -> None:
+    """bf16 autocast (the CPU default where the CPU has native bf16) stays close to fp32: same
+    weights, embeddings and image gradients within a few bf16 ulps of direction."""
+    torch.manual_seed(0)
+    fp32 = build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": "fp32"}})
+    low = build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": precision}})
+    low.net.load_state_dict(fp32.net.state_dict())
+    x = torch.rand(3, 3, 64, 64, requires_grad=True)
+    a, b = fp32.encode_image(x), low.encode_image(x)
+    assert b.dtype == torch.float32 and b.shape == a.shape
+    cos = torch.nn.functional.cosine_similarity
+    assert cos(a, b).min() > 0.999
+    ga = torch.autograd.grad(a.square().sum(), x)[0]
+    gb = torch.autograd.grad(low.encode_image(x).square().sum(), x)[0]
+    assert torch.isfinite(gb).all() and cos(ga.flatten(1), gb.flatten(1)).min() > 0.99
+    want = torch.bfloat16 if precision == "bf16" or clip_mod._cpu_has_bf16() else torch.float32
+    assert low.compute_dtype(torch.device("cpu")) == want
+
+
+def test_precision_errors() -> None:
+    with pytest.raises(ConfigError, match="precision"):
+        build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": "int8"}})
+    g = build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": "fp16"}})
+    with pytest.raises(ConfigError, match="fp16 needs a CUDA"):
+        g.encode_image(torch.rand(1, 3, 32, 32))
 
 
 def test_clip_shortest_resize_mode() -> None:

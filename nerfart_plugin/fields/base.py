@@ -139,7 +139,9 @@ class Field(nn.Module):
         self.color_layers = int(color_layers)
 
     # ---- contract -------------------------------------------------------------------------
-    def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:  # pragma: no cover - abstract
+    def forward(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:  # pragma: no cover
+        """``with_normal=False``: the caller needs no normals (e.g. a colour-only no-grad render);
+        a field may then skip work that only normals need."""
         raise NotImplementedError
 
     def alpha(self, out: dict[str, Tensor], deltas: Tensor, dirs: Tensor) -> Tensor:  # pragma: no cover
@@ -197,7 +199,10 @@ class SDFField(Field):
     the training forward evaluates the geometry once per sample and the
     (4-tap) gradient only on this random fraction of samples, for the eikonal
     term: ~2.5x cheaper per sample with the grid encoding. No-grad rendering
-    always computes every gradient (normal maps, contract).
+    computes every gradient (normal maps) unless the caller passes
+    ``with_normal=False`` and neither colour nor alpha reads the gradient: then
+    the geometry net runs once per sample (1 instead of 4 taps), e.g. in the
+    colour-only first pass of stylization (Section 4.4).
     """
 
     is_sdf = True
@@ -242,8 +247,16 @@ class SDFField(Field):
         return (self.grad_samples < 1.0 and torch.is_grad_enabled() and not self.color_normal
                 and not self.alpha_needs_gradient)
 
-    def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
+    def _gradient_free(self, with_normal: bool) -> bool:
+        """True when nothing asked for reads the SDF gradient (no-grad, colour-only rendering)."""
+        return (not with_normal and not torch.is_grad_enabled() and not self.color_normal
+                and not self.alpha_needs_gradient)
+
+    def forward(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:
         """x [N,3], d [N,3] unit -> ``rgb`` [N,3], ``sdf`` [N], ``gradient`` [N,3], ``normal`` [N,3] (unit).
+
+        ``with_normal=False`` under no-grad with ``color_normal=false`` and an alpha that
+        ignores the gradient: only ``rgb`` and ``sdf`` (one geometry evaluation per sample).
 
         With ``grad_samples < 1`` (training only, needs ``color_normal=false`` and
         an alpha that ignores the gradient) the gradient is computed for a random
@@ -251,6 +264,9 @@ class SDFField(Field):
         ``gradient``/``normal`` are 0 and ``gradient_mask`` [N] (bool) marks
         the computed rows (the eikonal term uses those).
         """
+        if self._gradient_free(with_normal):
+            h = self._geo(x).float()
+            return {"rgb": self._color([h[..., 1:]], d), "sdf": h[..., 0]}
         if self._subsample_gradient():
             return self._forward_subset(x, d)
         if self.grad_type == "finite_difference":

@@ -103,8 +103,8 @@ class NeRFField(Field):
         """Density sigma [N] >= 0 (1/world units)."""
         return self._density(self._geo(x)[..., 0])
 
-    def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
-        """x [N,3], d [N,3] unit -> ``rgb`` [N,3] in [0,1], ``sigma`` [N] >= 0."""
+    def forward(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:
+        """x [N,3], d [N,3] unit -> ``rgb`` [N,3] in [0,1], ``sigma`` [N] >= 0 (no normals: ``with_normal`` unused)."""
         h = self._geo(x)
         sigma = self._density(h[..., 0])
         rgb = self._color([h[..., 1:]], d)

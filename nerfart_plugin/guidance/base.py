@@ -65,6 +65,12 @@ class Guidance(nn.Module, abc.ABC):
             raise ValueError(f"encode_image expects [B,3,H,W] in [0,1], got {tuple(img.shape)}")
         return self._encode_image(img)
 
+    def encode_images(self, imgs: list[Tensor]) -> list[Tensor]:
+        """Embeddings of several image batches (e.g. the whole view and its local patches), one
+        ``[B_i,D]`` per input; encoders that can batch them into one call override this (same
+        values as separate :meth:`encode_image` calls, fewer passes through the network)."""
+        return [self.encode_image(x) for x in imgs]
+
     def encode_text(self, texts: list[str] | tuple[str, ...] | str) -> Tensor:
         """Text embeddings (unnormalized, no grad), cached per string.
 

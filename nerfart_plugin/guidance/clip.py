@@ -27,6 +27,7 @@ tokenizer (the end-of-text token is kept); we log a warning naming the prompt.
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 from pathlib import Path
@@ -126,6 +127,18 @@ def _is_torchscript_archive(path: str) -> bool:
         return False
 
 
+PRECISIONS = ("auto", "fp32", "bf16", "fp16")
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_has_bf16() -> bool:
+    """Native bf16 matmuls on this CPU (oneDNN: AVX512-BF16 or AMX)."""
+    try:
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    except (AttributeError, RuntimeError):
+        return False
+
+
 @register("guidance", "clip")
 class CLIPGuidance(Guidance):
     """Frozen open_clip model as :class:`Guidance`.
@@ -145,6 +158,15 @@ class CLIPGuidance(Guidance):
             or "shortest" (CLIP's shortest-side resize + centre crop).
         model_overrides: extra keyword overrides of the open_clip model config
             (e.g. :data:`TINY_TEST_OVERRIDES`).
+        precision: image-encoder arithmetic: "fp32", "bf16" (autocast), "fp16"
+            (autocast; CUDA only) or "auto" (default): fp16 on CUDA, as OpenAI's
+            CLIP runs there, bf16 on CPUs with native bf16 (AVX512-BF16/AMX),
+            else fp32. Weights and text embeddings stay fp32. Measured on this
+            machine's CPU (ViT-B/32): bf16 fwd+bwd 0.18-0.20 s per image vs 0.37 s
+            in fp32, embeddings within cosine 0.99995 and image gradients within
+            cosine 0.9998 of fp32. On CPU bf16 images are encoded one at a time:
+            with batches > 1, torch 2.14's CPU bf16 ``bmm`` path (frozen weights)
+            is ~25x slower.
         device: where to put the model (default CPU; ``.to()`` works as usual).
     """
 
@@ -160,6 +182,7 @@ class CLIPGuidance(Guidance):
         quick_gelu: bool | None = None,
         resize_mode: str = "squash",
         model_overrides: dict[str, Any] | None = None,
+        precision: str = "auto",
         device: str | torch.device | None = None,
     ) -> None:
         super().__init__()
@@ -172,6 +195,9 @@ class CLIPGuidance(Guidance):
             )
         if resize_mode not in ("squash", "shortest"):
             raise ConfigError(f"guidance.clip.resize_mode={resize_mode!r}; use 'squash' or 'shortest'")
+        if precision not in PRECISIONS:
+            raise ConfigError(f"guidance.clip.precision={precision!r}; use one of {', '.join(PRECISIONS)}")
+        self.precision = precision
         if isinstance(pretrained, str) and pretrained.strip().lower() in ("", "none", "null", "random"):
             pretrained = None
         self.model_name = model
@@ -302,8 +328,37 @@ class CLIPGuidance(Guidance):
             img = kornia.geometry.transform.resize(img, self.image_size, interpolation="bilinear", antialias=True)
         return self.normalize(img)
 
+    def compute_dtype(self, device: torch.device) -> torch.dtype:
+        """The dtype image encoding runs in on ``device`` (see ``precision``)."""
+        p = self.precision
+        if p == "auto":
+            if device.type == "cuda":
+                return torch.float16
+            return torch.bfloat16 if device.type == "cpu" and _cpu_has_bf16() else torch.float32
+        if p == "fp16" and device.type != "cuda":
+            raise ConfigError("guidance.clip.precision=fp16 needs a CUDA device (CPU autocast: use bf16 or auto).")
+        return {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}[p]
+
+    def _net_image(self, x: Tensor) -> Tensor:
+        """The image tower on preprocessed ``x`` [B,3,S,S] in ``compute_dtype``; float32 [B,D]."""
+        dtype = self.compute_dtype(x.device)
+        if dtype == torch.float32:
+            return self.net.encode_image(x).float()
+        with torch.autocast(x.device.type, dtype=dtype):
+            if x.device.type == "cpu" and x.shape[0] > 1:  # one at a time: see ``precision``
+                return torch.cat([self.net.encode_image(xi[None]) for xi in x]).float()
+            return self.net.encode_image(x).float()
+
     def _encode_image(self, img: Tensor) -> Tensor:
-        return self.net.encode_image(self.preprocess(img))
+        return self._net_image(self.preprocess(img))
+
+    def encode_images(self, imgs: list[Tensor]) -> list[Tensor]:
+        """One network pass for all inputs: each is preprocessed (resized) on its own, then batched."""
+        for x in imgs:
+            if x.dim() != 4 or x.shape[1] != 3:
+                raise ValueError(f"encode_images expects [B,3,H,W] in [0,1] tensors, got {tuple(x.shape)}")
+        emb = self._net_image(torch.cat([self.preprocess(x) for x in imgs]))
+        return list(emb.split([x.shape[0] for x in imgs]))
 
     def _encode_texts(self, texts: list[str]) -> Tensor:
         encode = getattr(self.tokenizer, "encode", None)

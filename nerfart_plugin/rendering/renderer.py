@@ -109,6 +109,7 @@ class VolumeRenderer(nn.Module):
         perturb: bool = False,
         t_samples: Optional[Tensor] = None,
         generator: Optional[torch.Generator] = None,
+        with_normals: bool = True,
     ) -> dict[str, Tensor]:
         """Render rays ``batch`` (``rays_o`` [R,3], ``rays_d`` [R,3], ``near`` [R], ``far`` [R]).
 
@@ -118,8 +119,9 @@ class VolumeRenderer(nn.Module):
         ``weights`` [R,K], ``t`` [R,K] (section midpoints), ``deltas`` [R,K]
         (section lengths ``(t_end - t_start) ||rays_d||``), ``t_samples``
         [R,K,2] (pass back to reproduce the same samples); SDF fields add
-        ``normal`` [R,3] (``sum w n``) and, when grad is enabled, the field's
-        regularizers (``eikonal``: mean over samples of ``(|grad sdf| - 1)^2``).
+        ``normal`` [R,3] (``sum w n``; with ``with_normals=False`` a no-grad
+        render may omit it and skip the gradient taps) and, when grad is enabled,
+        the field's regularizers (``eikonal``: mean over samples of ``(|grad sdf| - 1)^2``).
         """
         for key in ("rays_o", "rays_d", "near", "far"):
             if key not in batch:
@@ -141,7 +143,8 @@ class VolumeRenderer(nn.Module):
         pts = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [R,K,3]
         dirs_k = dirs[:, None, :].expand(R, K, 3)
 
-        out, reg_out = self._query_field(pts.reshape(-1, 3), dirs_k.reshape(-1, 3), deltas.reshape(-1) > 0)
+        out, reg_out = self._query_field(pts.reshape(-1, 3), dirs_k.reshape(-1, 3), deltas.reshape(-1) > 0,
+                                         with_normals)
         alpha = self.field.alpha(out, deltas, dirs_k).float()
         alpha = torch.where(deltas > 0, alpha, torch.zeros_like(alpha))  # zero-length section = transparent
         weights, _ = weights_from_alpha(alpha)
@@ -158,14 +161,15 @@ class VolumeRenderer(nn.Module):
             "rgb": rgb, "depth": depth, "opacity": opacity, "weights": weights,
             "t": t, "deltas": deltas, "t_samples": t_samples,
         }
-        if getattr(self.field, "is_sdf", False):
+        if "normal" in out:
             normal = out["normal"].reshape(R, K, 3).float()
             result["normal"] = (weights[..., None] * normal).sum(-2)
         if torch.is_grad_enabled():
             result.update(self.field.regularizers(reg_out))
         return result
 
-    def _query_field(self, x: Tensor, d: Tensor, valid: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    def _query_field(self, x: Tensor, d: Tensor, valid: Tensor,
+                     with_normals: bool = True) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """``field(x, d)`` evaluated only where ``valid`` [N] (non-empty sections), zero-filled elsewhere.
 
         Occupancy sampling gives rays that miss every occupied cell zero-length
@@ -175,12 +179,12 @@ class VolumeRenderer(nn.Module):
         """
         n = x.shape[0]
         if not self.compact or bool(valid.all()):
-            out = self.field(x, d)
+            out = self.field(x, d, with_normal=with_normals)
             return out, out
         idx = valid.nonzero()[:, 0]
         if idx.numel() == 0:  # keep shapes/graph alive: evaluate one (transparent) sample
             idx = torch.zeros(1, dtype=torch.long, device=x.device)
-        sub = self.field(x.index_select(0, idx), d.index_select(0, idx))
+        sub = self.field(x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normals)
         full = {}
         for k, v in sub.items():
             if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == idx.shape[0]:
@@ -190,11 +194,12 @@ class VolumeRenderer(nn.Module):
         return full, sub
 
     @torch.no_grad()
-    def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False) -> dict[str, Tensor]:
+    def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False,
+                       with_normals: bool = True) -> dict[str, Tensor]:
         """Render a large ray batch (e.g. a full view) in chunks without grad.
 
         Returns ``rgb`` [R,3], ``depth`` [R], ``opacity`` [R] (and ``normal``
-        [R,3] for SDF fields), concatenated over chunks; ints ``H``/``W`` in the
+        [R,3] for SDF fields unless ``with_normals=False``), concatenated over chunks; ints ``H``/``W`` in the
         batch are passed through unchanged.
         """
         R = batch["rays_o"].shape[0]
@@ -203,7 +208,7 @@ class VolumeRenderer(nn.Module):
         for s in range(0, R, int(chunk)):
             sub = {k: (v[s : s + chunk] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == R else v)
                    for k, v in batch.items()}
-            res = self.forward(sub, perturb=perturb)
+            res = self.forward(sub, perturb=perturb, with_normals=with_normals)
             for k in keys:
                 if k in res:
                     parts.setdefault(k, []).append(res[k])

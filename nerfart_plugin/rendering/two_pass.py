@@ -40,7 +40,8 @@ def render_fixed_samples(renderer: VolumeRenderer, batch: dict[str, Any], chunk:
     keys = ("rgb", "depth", "opacity", "t_samples")
     parts: dict[str, list[Tensor]] = {k: [] for k in keys}
     for s in range(0, n, chunk):
-        out = renderer(_slice(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator)
+        out = renderer(_slice(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator,
+                       with_normals=False)  # colour only: SDF fields skip the gradient taps
         for k in keys:
             parts[k].append(out[k])
     return {k: torch.cat(v, 0) for k, v in parts.items()}

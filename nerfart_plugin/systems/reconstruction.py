@@ -105,10 +105,11 @@ class ReconstructionSystem(RenderSystem):
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     # ------------------------------------------------------------------ validation
-    def render_view(self, batch: dict[str, Any], chunk: int = 4096) -> dict[str, torch.Tensor]:
-        """Render a full view batch (ints H, W) -> images [H,W,C]."""
+    def render_view(self, batch: dict[str, Any], chunk: int = 4096, with_normals: bool = True) -> dict[str, torch.Tensor]:
+        """Render a full view batch (ints H, W) -> images [H,W,C] (``with_normals=False``: colour,
+        depth and opacity only, cheaper for SDF fields)."""
         H, W = int(batch["H"]), int(batch["W"])
-        out = self.renderer.render_chunked(to_device(batch, self.device), chunk=chunk)
+        out = self.renderer.render_chunked(to_device(batch, self.device), chunk=chunk, with_normals=with_normals)
         return {k: v.reshape(H, W, -1) for k, v in out.items() if torch.is_tensor(v)}
 
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:

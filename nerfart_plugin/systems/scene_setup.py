@@ -78,7 +78,18 @@ def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSe
         reasons.append("field box [-1,1]^3: unit sphere of the normalized scene")
 
     occ = dict(render_cfg.get("occupancy") or {})
-    occ_res = int(occ.get("resolution", 64)) if occ.get("enabled", True) else 0
+    enabled = occ.get("enabled", "auto")
+    if enabled == "auto":
+        # An NDC frustum is scene from the near plane to infinity: a forward-facing capture leaves
+        # almost no empty cells to skip (fern: ~53% occupied), and the grid's refreshes then cost
+        # more than they save (BENCHMARKS.md, scene_setup). Bounded/object captures are mostly empty.
+        enabled = not ndc
+        if ndc:
+            reasons.append("occupancy grid off: an NDC frustum is nearly all occupied, nothing to skip "
+                           "(render.occupancy.enabled=true forces it)")
+    elif not isinstance(enabled, bool):
+        raise ConfigError(f"render.occupancy.enabled must be auto, true or false, not {enabled!r}.")
+    occ_res = int(occ.get("resolution", 64)) if enabled else 0
     if occ_res:
         # No point resolving the grid finer than what a pixel footprint can resolve.
         pixel_limited = max(16, min(occ_res, 2 ** (max(scene.height, scene.width) - 1).bit_length() // 2))
@@ -87,7 +98,7 @@ def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSe
             occ_res = pixel_limited
         else:
             reasons.append(f"occupancy grid {occ_res}^3 for empty-space skipping")
-    else:
+    elif occ.get("enabled", "auto") is False:
         reasons.append("occupancy grid off (render.occupancy.enabled=false): uniform stratified sampling")
     num_samples = int(render_cfg.get("num_samples", 64))
     setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,

@@ -156,7 +156,8 @@ class StylizationSystem(RenderSystem):
         """Cached I_src of view ``i`` ([1,3,H,W]), its CLIP embedding and perceptual features."""
         if i not in self._cache:
             v = self.views[i]
-            out = self.source.render_chunked(to_device(v, self.device), chunk=int(self.cfg.get("chunk", 4096)))
+            out = self.source.render_chunked(to_device(v, self.device), chunk=int(self.cfg.get("chunk", 4096)),
+                                             with_normals=False)
             img = out["rgb"].reshape(v["H"], v["W"], 3).permute(2, 0, 1)[None].clamp(0, 1)
             entry = {"img": img, "emb": self.guidance.encode_image(img)}
             if self.lambdas["perceptual"] > 0:
@@ -175,7 +176,14 @@ class StylizationSystem(RenderSystem):
         """The image terms of Eq. 8 for the rendered view ``img`` [1,3,H,W] (λ=0 terms skipped)."""
         lam, terms = self.lambdas, {}
         need_emb = lam["dir"] > 0 or lam["global"] > 0
-        emb = self.guidance.encode_image(img) if need_emb else None
+        need_local = self.neg_sampler is not None and lam["local"] > 0
+        inputs = [img] if need_emb else []
+        if need_local:  # Eq. 6: random patches, side local_patch_frac of the view, upsampled to CLIP's input
+            inputs.append(random_patches(img, int(self.cfg.get("local_patches", 4)),
+                                         float(self.cfg.get("local_patch_frac", 0.1)),
+                                         self.guidance.input_size, generator=g))
+        encoded = self.guidance.encode_images(inputs) if inputs else []  # one CLIP pass for view + patches
+        emb = encoded[0] if need_emb else None
         if lam["dir"] > 0:
             if self.exp.get("directional", "relative") == "absolute":
                 terms["dir"] = absolute_clip_loss(emb, self.tgt_txt)  # Eq. 3
@@ -186,11 +194,8 @@ class StylizationSystem(RenderSystem):
             tau = float(self.cfg.get("tau", 0.07))
             if lam["global"] > 0:
                 terms["global"] = contrastive_loss(emb, self.tgt_txt, negs, tau)  # Eq. 5, global
-            if lam["local"] > 0:
-                patches = random_patches(img, int(self.cfg.get("local_patches", 4)),
-                                         float(self.cfg.get("local_patch_frac", 0.1)),
-                                         self.guidance.input_size, generator=g)
-                terms["local"] = contrastive_loss(self.guidance.encode_image(patches), self.tgt_txt, negs, tau)
+            if need_local:
+                terms["local"] = contrastive_loss(encoded[-1], self.tgt_txt, negs, tau)  # Eq. 5 on patches
         if lam["perceptual"] > 0:
             terms["perceptual"] = perceptual_loss(self.perceptual.features(img), src["feats"])  # Eq. 9
         return terms
