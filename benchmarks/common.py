@@ -37,6 +37,7 @@ from nerfart_plugin.utils.io import atomic_write_text  # noqa: E402
 BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 FIGURES = ROOT / "benchmarks" / "figures"
 QUICK_OUT = ROOT / "outputs" / "benchmarks" / "BENCHMARKS.quick.md"
+RAW_DIR = ROOT / "outputs" / "benchmarks"
 GiB = 1024**3
 
 
@@ -130,6 +131,14 @@ def write_section(path: Path, name: str, text: str) -> None:
         new = old.rstrip("\n") + "\n\n" + text + "\n"
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(path, new)
+
+
+def raw_path(name: str, quick: bool) -> Path:
+    """Where a script's raw JSON results go: ``outputs/benchmarks/<name>.json``; quick smoke runs
+    use ``outputs/benchmarks/quick/`` so they never overwrite a real run's raw results."""
+    d = RAW_DIR / "quick" if quick else RAW_DIR
+    d.mkdir(parents=True, exist_ok=True)
+    return d / f"{name}.json"
 
 
 def md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], align: Optional[str] = None) -> list[str]:

@@ -246,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     if ok:
         body += ["", f"Gradients: patch backprop matches full backprop to a max relative difference of "
                      f"{max(ok):.1e} (float32 summation order) — {'OK' if max(ok) < 1e-3 else 'MISMATCH'}."]
-    raw_path = (common.QUICK_OUT.parent if args.quick else ROOT / "outputs" / "benchmarks") / f"{NAME}.json"
+    raw_path = common.raw_path(NAME, args.quick)
     raw_path.parent.mkdir(parents=True, exist_ok=True)
     raw_path.write_text(json.dumps(raw, indent=1, default=str))
     text = common.section(NAME, "Patch backprop versus full backprop: peak memory and time",

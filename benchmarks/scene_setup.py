@@ -228,7 +228,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     body += common.md_table(["scene", "image", "variant", "setup", "occupied", "train step (s)", "train peak (MiB)",
                              "render view (s)", "render peak (MiB)", "PSNR", "masked PSNR"], rows, "llllrrrrrrr")
-    raw = (common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks") / f"{NAME}.json"
+    raw = common.raw_path(NAME, q)
     raw.parent.mkdir(parents=True, exist_ok=True)
     raw.write_text(json.dumps(results, indent=1, default=str))
     text = common.section(NAME, "Scene-derived setup: what occupancy grid and background model cost or save",

@@ -197,7 +197,8 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
     trainer.fit(system, train_dataloaders=steps_loader())
     out: dict[str, Any] = {"timings": rec.timings, "resolution": int(sc["resolution"]),
                            "local_patches": int(sc["local_patches"]), "guidance": guidance, "perceptual": perceptual,
-                           "patch_size": int(sc["patch_size"]), "num_samples": int(c["render"]["num_samples"])}
+                           "patch_size": int(sc["patch_size"]),
+                           "num_samples": int(sc.get("num_samples") or c["render"]["num_samples"])}
     if score:
         import torch
 
@@ -374,9 +375,7 @@ def main(argv: list[str] | None = None) -> int:
                          common.fmt(s["clip_score_source"], ".4f"), common.fmt(s["clip_dir"], ".3f")])
         body += common.md_table(["resolution", "local patches", "step (s)", "render (s)", "losses (s)",
                                  "backprop (s)", "CLIP score", "source score", "CLIP dir. sim."], rows)
-    raw_dir = common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks"
-    raw_dir.mkdir(parents=True, exist_ok=True)
-    (raw_dir / f"{NAME}.json").write_text(json.dumps({"part0": fidelity, "part1": {"timings": r1["timings"], "isolated": iso,
+    common.raw_path(NAME, q).write_text(json.dumps({"part0": fidelity, "part1": {"timings": r1["timings"], "isolated": iso,
                                                                 "clip_reference": ref, "ratio": ratio},
                                                       "sweep": sweep}, indent=1, default=str))
     text = common.section(NAME, "Stylization: time per step and the resolution / local-patch trade-off",

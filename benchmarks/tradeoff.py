@@ -77,6 +77,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkpoints", type=int, default=None, help="evaluations per run (default 4; quick 1)")
     p.add_argument("--near", type=float, default=0.5, help="dB below the front that still counts as near it")
     p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
+    p.add_argument("--include-results", type=Path, nargs="*", default=[],
+                   help="raw JSON of earlier runs of this script (outputs/benchmarks/tradeoff*.json) to plot and "
+                        "rank together with this run; their commands are listed")
+    p.add_argument("--report-only", action="store_true",
+                   help="train nothing: rank and plot the --include-results only (e.g. two runs made side by side)")
+    p.add_argument("--raw", type=Path, default=None, help="where this run's raw JSON goes "
+                   "(default outputs/benchmarks/tradeoff.json)")
     common.add_common_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -93,13 +100,16 @@ def main(argv: list[str] | None = None) -> int:
     out, figs = common.output_paths(args)
 
     configs: list[dict[str, Any]] = []
-    if not args.presets_only:
+    if args.report_only:
+        if not args.include_results:
+            p.error("--report-only needs --include-results with the raw JSON of earlier runs")
+    elif not args.presets_only:
         for bb, enc, spp, res in itertools.product(args.backbones, args.encodings, sorted(args.samples),
                                                    sorted(args.resolutions)):
             configs.append({"backbone": bb, "encoding": enc, "samples": spp, "resolution": res,
                             "overrides": [f"data.resolution={res}", f"backbone={bb}", f"encoding={enc}",
                                           f"render.num_samples={spp}"]})
-    if args.presets or args.presets_only:
+    if (args.presets or args.presets_only) and not args.report_only:
         pres_res = 16 if q else 128
         for name in PRESETS:
             ov = [f"preset={name}", f"data.resolution={pres_res}"]
@@ -109,8 +119,9 @@ def main(argv: list[str] | None = None) -> int:
 
     scenes: dict[tuple, Any] = {}
     results: list[dict[str, Any]] = []
-    raw = (common.QUICK_OUT.parent if q else ROOT / "outputs" / "benchmarks") / f"{NAME}.json"
+    raw = args.raw or common.raw_path(NAME, q)
     raw.parent.mkdir(parents=True, exist_ok=True)
+    this_cmd = common.command(NAME + ".py", argv)
     for cfg in configs:
         ov = ["data=h3ds", *cfg["overrides"], *extra]
         # the loaded scene depends on the data settings only (train_one decides the setup per run)
@@ -124,15 +135,33 @@ def main(argv: list[str] | None = None) -> int:
             steps = args.steps or int(common.compose(["stage=reconstruct", *ov])["reconstruct"]["steps"])
             cps = [budget * (i + 1) / checkpoints for i in range(checkpoints - 1)]
             r = train_one(scenes[key], ov, budget, cps, 0, True, max_steps=steps)
-            results.append({**cfg, "label": name, **r})
+            results.append({**cfg, "label": name, "command": this_cmd, "budget": budget, **r})
         except Exception as exc:  # noqa: BLE001 - one failed configuration must not lose the others
             log.exception("run failed")
-            results.append({**cfg, "label": name, "error": f"{type(exc).__name__}: {exc}"})
+            results.append({**cfg, "label": name, "command": this_cmd, "error": f"{type(exc).__name__}: {exc}"})
         raw.write_text(json.dumps(results, indent=1, default=str))  # partial results survive a crash
 
+    by_label: dict[str, dict[str, Any]] = {}  # a later file's run of a configuration replaces an earlier one
+    for path in args.include_results:
+        try:
+            rows = json.loads(Path(path).read_text())
+        except (OSError, ValueError) as exc:
+            p.error(f"--include-results {path}: cannot read it ({exc}); give the raw JSON a previous run wrote")
+        by_label.update({r["label"]: r for r in rows if "label" in r})
+    done = {r["label"] for r in results}
+    included = [r for lbl, r in by_label.items() if lbl not in done]
+    results = results + included
+    if args.report_only:  # describe the included runs' settings
+        budget = max((float(r["budget"]) for r in included if "budget" in r), default=budget)
+        checkpoints = max((len(r.get("records", [])) for r in included), default=checkpoints)
     metric = "psnr_masked"
+    # PSNR on 64 px views is not comparable with PSNR on 128 px views (other targets): the front is
+    # taken over the runs evaluated at the highest resolution present (the presets' 128 px)
+    rank_res = max((int(r.get("resolution", 0)) for r in results), default=0)
     pts, owner = [], []
     for i, r in enumerate(results):
+        if int(r.get("resolution", 0)) != rank_res:
+            continue
         for rec in r.get("records", []):
             if metric in rec:
                 pts.append((rec["time"], rec[metric]))
@@ -144,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
         r = results[i]
         if "error" in r or not r.get("records"):
             return "not measured"
+        if int(r.get("resolution", 0)) != rank_res:
+            return f"not ranked ({r.get('resolution')} px views)"
         if i in on_front:
             return "ON the front"
         gaps = [best_by(pts, rec["time"]) - rec.get(metric, float("-inf")) for rec in r["records"]]
@@ -163,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
             if not recs:
                 continue
             is_preset = "preset" in r
+            if int(r.get("resolution", 0)) != rank_res:
+                continue  # other evaluation resolution: not on this PSNR scale
             ax.plot([x["time"] for x in recs], [x[metric] for x in recs], marker="*" if is_preset else "o",
                     ms=10 if is_preset else 4, lw=1.5 if is_preset else 0.6, alpha=1.0 if is_preset else 0.5,
                     label=r["label"] if is_preset or len(results) <= 12 else None)
@@ -197,10 +230,20 @@ def main(argv: list[str] | None = None) -> int:
         f"reconstruct.steps steps or {budget:.0f} s of training, whichever comes first"
         + (f" (extra overrides: {' '.join(extra)})" if extra else "") + f"; {checkpoints} evaluation(s) per run on all "
         "held-out views (time excluded). Presets run at data.resolution=128 (paper's native resolution would be 256). "
-        f"Pareto front over all checkpoints (time, masked PSNR); 'near' = within {args.near:g} dB of the best PSNR "
+        f"Pareto front over all checkpoints (time, masked PSNR) of the runs at {rank_res} px (PSNR at another "
+        f"resolution is measured against other images and not ranked); 'near' = within {args.near:g} dB of the best PSNR "
         "any configuration reached by the same time.",
         "",
     ]
+    others = sorted({r["command"] for r in included if r.get("command") and r["command"] != this_cmd})
+    if others:
+        if args.report_only:
+            body += ["This invocation trained nothing: every row was measured by one of the runs below (their "
+                     "machine: this one; a command starting with `taskset` ran pinned to that single core), and "
+                     "this report ranks and plots them together (a later run of a configuration replaces an "
+                     "earlier one).", ""]
+        body += ["Rows from earlier runs of this script on the same machine, ranked together with this one: "
+                 + "; ".join(f"`{c}`" for c in others) + ".", ""]
     body += common.md_table(["configuration", "train time (s)", "steps", "s/step", "masked PSNR (dB)", "PSNR (dB)",
                              "SSIM", "Pareto"], rows, "lrrrrrrl")
     body += ["", "Pareto front (time s: masked PSNR dB, configuration): "

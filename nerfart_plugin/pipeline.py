@@ -212,7 +212,7 @@ class Pipeline:
         if self.c["export"].get("enabled", True):
             self.export_mesh(system.renderer.field, run_dir / "mesh" / "source")
         with atomic_path(final) as tmp:
-            trainer.save_checkpoint(tmp)
+            trainer.save_checkpoint(tmp, weights_only=False)
         log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics.get("psnr", float("nan")), run_dir)
         self.results["reconstruction"] = {"dir": str(run_dir), **{k: metrics[k] for k in metrics
                                                                    if k.startswith(("psnr", "ssim"))}}
@@ -295,7 +295,7 @@ class Pipeline:
             metrics["WARNING"] = "UNSTYLED by a real model: random or toy guidance weights were used"
         atomic_write_json(run_dir / "metrics.json", metrics)
         with atomic_path(final) as tmp:
-            trainer.save_checkpoint(tmp)
+            trainer.save_checkpoint(tmp, weights_only=False)
         log.info("stylization done -> %s", run_dir)
         self.results["stylization"] = {"dir": str(run_dir), **{k: v for k, v in metrics.items()
                                                                if k.startswith(("clip_", "view_", "mesh_"))}}

@@ -90,12 +90,19 @@ def test_reconstruction_quick(out: Path) -> None:
 
 def test_tradeoff_quick(out: Path) -> None:
     mod = _load("tradeoff")
-    assert mod.main(["--quick", "--backbones", "volsdf", "--encodings", "grid", "frequency", "--samples", "8",
-                     "--resolutions", "16", "--budget", "2", "--out", str(out)]) == 0
+    first = out.parent / "first.json"
+    assert mod.main(["--quick", "--backbones", "volsdf", "--encodings", "grid", "--samples", "8",
+                     "--resolutions", "16", "--budget", "2", "--raw", str(first), "--out", str(out)]) == 0
+    # a second run (another encoding) ranked together with the first one's raw results
+    assert mod.main(["--quick", "--backbones", "volsdf", "--encodings", "frequency", "--samples", "8",
+                     "--resolutions", "16", "--budget", "2", "--include-results", str(first),
+                     "--raw", str(out.parent / "second.json"), "--out", str(out)]) == 0
     sec = _check_common(out.read_text(), "tradeoff", "--budget 2")
     rows = _table_rows(sec)
     assert len(rows) == 2 and all("error" not in r for r in rows)
+    assert {r.split("|")[1].strip() for r in rows} == {"volsdf/grid/8spp/16px", "volsdf/frequency/8spp/16px"}
     assert sum("ON the front" in r for r in rows) >= 1
+    assert "earlier runs" in sec and "--encodings grid" in sec  # the included run's command is listed
     assert (out.parent / "figures" / "tradeoff.png").is_file()
 
 

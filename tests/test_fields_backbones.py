@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import pytest
 import torch
 
@@ -155,6 +157,24 @@ def test_background_model_fills_remaining_transmittance() -> None:
     assert all(p.grad is not None for p in bg.parameters())
 
 
+def test_occupancy_grid_never_empties_a_lost_surface(caplog: pytest.LogCaptureFixture) -> None:
+    """An SDF without a zero crossing in the box (its surface lost mid-training) must not empty the
+    grid for good: the grid falls back to all cells, warns once, and prunes again once a surface is back."""
+    field = build_field({"name": "volsdf", "radius": 0.5}, ENCODINGS["frequency"])
+    grid = OccupancyGrid(resolution=16, bound=1.0, ema_decay=0.0)
+    with torch.no_grad():
+        field.geo_net.out.bias[0] += 10.0  # sdf > 0 everywhere: no surface
+    with caplog.at_level(logging.WARNING, logger="nerfart_plugin.fields.occupancy"):
+        grid.update(field, 0, force=True)
+        grid.update(field, 1, force=True)
+    assert grid.occupied_fraction == 1.0
+    assert sum("no cell occupied" in r.getMessage() for r in caplog.records) == 1
+    with torch.no_grad():
+        field.geo_net.out.bias[0] -= 10.0  # the surface is back
+    grid.update(field, 2, force=True)
+    assert 0.0 < grid.occupied_fraction < 0.5
+
+
 def test_occupancy_grid_update_and_query() -> None:
     field = build_field({"name": "neus", "radius": 0.5}, ENCODINGS["frequency"])  # default width: good sphere init
     grid = OccupancyGrid(resolution=16, bound=1.0, update_every=4)
@@ -169,9 +189,25 @@ def test_occupancy_grid_update_and_query() -> None:
     nerf = build_field({"name": "nerf", **SMALL, "density_bias": -30.0}, ENCODINGS["frequency"])
     g2 = OccupancyGrid(resolution=8, bound=1.0, ema_decay=0.0)
     g2.update(nerf, 0, force=True)
-    assert g2.occupied_fraction == 0.0
-    # empty grid: rays still get valid samples and render the background exactly
+    # nothing occupied would be absorbing (no samples, no gradient, no recovery): sample everywhere
+    assert g2.occupied_fraction == 1.0
+    g2.occupied.zero_()
+    # empty grid (e.g. loaded): rays still get valid samples and render the background exactly
     r = VolumeRenderer(nerf, num_samples=8, occupancy=g2, background_color=(0.2, 0.4, 0.6))
     out = r(_batch(4))
     assert torch.isfinite(out["t"]).all() and (out["weights"] == 0).all()
     torch.testing.assert_close(out["rgb"], torch.tensor([[0.2, 0.4, 0.6]]).expand(4, 3))
+
+
+def test_encoding_mlp_lr_scale_sets_the_mlp_learning_rate() -> None:
+    """Frequency-encoded MLPs train at encoding.mlp_lr_scale x the MLP rate; grids keep their own rate."""
+    from nerfart_plugin.systems.base import param_groups
+
+    freq = VolumeRenderer(build_field({"name": "neus", **SMALL}, {**ENCODINGS["frequency"], "mlp_lr_scale": 0.25}))
+    groups = {g["name"]: g["lr"] for g in param_groups(freq, 1e-2, 4e-3)}
+    assert groups == {"mlp": pytest.approx(1e-3)}
+    grid = VolumeRenderer(build_field({"name": "neus", **SMALL}, ENCODINGS["grid"]))
+    groups = {g["name"]: g["lr"] for g in param_groups(grid, 1e-2, 4e-3)}
+    assert groups == {"grid": pytest.approx(1e-2), "mlp": pytest.approx(4e-3)}
+    with pytest.raises(ConfigError, match="mlp_lr_scale"):
+        build_field({"name": "neus"}, {**ENCODINGS["frequency"], "mlp_lr_scale": 0})

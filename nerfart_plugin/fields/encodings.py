@@ -22,10 +22,16 @@ __all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding"
 
 
 class Encoding(nn.Module):
-    """Base class: ``forward(x [N,in_dim]) -> [N, n_output_dims]``."""
+    """Base class: ``forward(x [N,in_dim]) -> [N, n_output_dims]``.
+
+    ``mlp_lr_scale`` (config key of every encoding, default 1.0) multiplies the learning
+    rate of the MLPs fed by this encoding (``systems.base.param_groups``): MLPs on a
+    high-frequency positional encoding diverge at the rate that suits MLPs on a grid.
+    """
 
     n_input_dims: int = 3
     n_output_dims: int
+    mlp_lr_scale: float = 1.0
 
     def regularizers(self) -> dict[str, Tensor]:
         """Optional parameter regularizers (e.g. grid total variation)."""
@@ -188,7 +194,12 @@ def build_encoding(cfg: dict | None, bound: float = 1.0) -> Encoding:
     if name is None:
         raise ConfigError("encoding config has no 'name'; set encoding.name to one of: " + ", ".join(registry.names("encoding")))
     cls = registry.get("encoding", str(name))
+    scale = cfg.pop("mlp_lr_scale", 1.0)
+    if not (isinstance(scale, (int, float)) and scale > 0):
+        raise ConfigError(f"encoding.mlp_lr_scale={scale!r}: use a positive number (1.0 = the configured MLP rate).")
     try:
-        return cls(bound=bound, **cfg)
+        enc = cls(bound=bound, **cfg)
+        enc.mlp_lr_scale = float(scale)
+        return enc
     except TypeError as exc:
         raise ConfigError(f"encoding {name!r}: bad config keys {sorted(cfg)} ({exc}); see {cls.__module__}.{cls.__name__} docstring.") from exc

@@ -73,6 +73,7 @@ class OccupancyGrid(nn.Module):
         n = self.resolution**3
         self.register_buffer("score", torch.zeros(n))
         self.register_buffer("occupied", torch.ones(n, dtype=torch.bool))
+        self._warned_empty = False
 
     def _cell_index(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Flat cell index [N] (clamped) and inside-box mask [N] of points x [N,3]."""
@@ -118,7 +119,18 @@ class OccupancyGrid(nn.Module):
         new = torch.nan_to_num(new, nan=1.0)  # a NaN field must not silently empty the grid
         self.score[idx] = torch.maximum(self.score[idx] * self.ema_decay, new)
         thr = 0.5 if field.is_sdf else min(self.threshold, max(self.min_threshold, float(self.score.mean())))
-        self.occupied.copy_(self.score > thr)
+        occupied = self.score > thr
+        if not bool(occupied.any()):
+            # An empty grid is absorbing: no samples -> no gradient -> the field can never bring
+            # its surface back (seen: NeuS + frequency encoding losing its surface for a few
+            # hundred steps). Nothing occupied is never a valid scene, so fall back to sampling
+            # everywhere until the field has a surface again.
+            if not self._warned_empty:
+                log.warning("occupancy grid step %d: no cell occupied (the field lost its surface); "
+                            "sampling the whole box until it has one again", step)
+                self._warned_empty = True
+            occupied = torch.ones_like(occupied)
+        self.occupied.copy_(occupied)
         log.debug("occupancy grid step %d: %.1f%% occupied", step, 100.0 * float(self.occupied.float().mean()))
         return True
 

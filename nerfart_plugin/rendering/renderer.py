@@ -8,6 +8,7 @@ midpoints, converts to opacities with ``field.alpha`` and composites:
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, Optional, Sequence
 
 import torch
@@ -168,6 +169,13 @@ class VolumeRenderer(nn.Module):
             result.update(self.field.regularizers(reg_out))
         return result
 
+    def _field_call(self, x: Tensor, d: Tensor, with_normals: bool) -> dict[str, Tensor]:
+        """``field(x, d)``; ``with_normal=False`` is passed only to fields whose ``forward`` takes it
+        (a custom field with the plain ``forward(x, d)`` contract keeps working, normals and all)."""
+        if not with_normals and "with_normal" in inspect.signature(self.field.forward).parameters:
+            return self.field(x, d, with_normal=False)
+        return self.field(x, d)
+
     def _query_field(self, x: Tensor, d: Tensor, valid: Tensor,
                      with_normals: bool = True) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
         """``field(x, d)`` evaluated only where ``valid`` [N] (non-empty sections), zero-filled elsewhere.
@@ -179,12 +187,12 @@ class VolumeRenderer(nn.Module):
         """
         n = x.shape[0]
         if not self.compact or bool(valid.all()):
-            out = self.field(x, d, with_normal=with_normals)
+            out = self._field_call(x, d, with_normals)
             return out, out
         idx = valid.nonzero()[:, 0]
         if idx.numel() == 0:  # keep shapes/graph alive: evaluate one (transparent) sample
             idx = torch.zeros(1, dtype=torch.long, device=x.device)
-        sub = self.field(x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normals)
+        sub = self._field_call(x.index_select(0, idx), d.index_select(0, idx), with_normals)
         full = {}
         for k, v in sub.items():
             if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == idx.shape[0]:

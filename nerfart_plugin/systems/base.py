@@ -34,11 +34,13 @@ def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: dict, set
 
 
 def param_groups(renderer: VolumeRenderer, lr_grid: float, lr_mlp: float, geometry: bool = True) -> list[dict]:
-    """Adam groups: encoding parameters (grids) at ``lr_grid``, the rest (MLPs, β, inv_s, background) at ``lr_mlp``.
+    """Adam groups: encoding parameters (grids) at ``lr_grid``, the rest (MLPs, β, inv_s, background) at
+    ``lr_mlp`` times the encoding's ``mlp_lr_scale``.
 
     With ``geometry=False`` the field's geometry parameters are left out (frozen).
     """
     field = renderer.field
+    lr_mlp = lr_mlp * float(getattr(field.encoding, "mlp_lr_scale", 1.0))
     frozen = set() if geometry else {id(p) for p in field.geometry_parameters()}
     enc = {id(p) for p in field.encoding.parameters()}
     grid_params, mlp_params = [], []

@@ -36,10 +36,10 @@ class AtomicCheckpoint(L.Callback):
         path = self.dirpath / LAST
         if trainer.world_size == 1:
             with atomic_path(path) as tmp:
-                trainer.save_checkpoint(tmp)
+                trainer.save_checkpoint(tmp, weights_only=False)  # full state: resumable
         else:  # DDP: every rank joins save_checkpoint (rank 0 writes), rank 0 renames
             tmp = self.dirpath / f".{LAST}.step{trainer.global_step}.tmp"
-            trainer.save_checkpoint(tmp)
+            trainer.save_checkpoint(tmp, weights_only=False)  # full state: resumable
             if trainer.is_global_zero:
                 os.replace(tmp, path)
             trainer.strategy.barrier("atomic_checkpoint")
