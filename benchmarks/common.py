@@ -37,7 +37,8 @@ from nerfart_plugin.utils.io import atomic_write_text  # noqa: E402
 BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 FIGURES = ROOT / "benchmarks" / "figures"
 QUICK_OUT = ROOT / "outputs" / "benchmarks" / "BENCHMARKS.quick.md"
-RAW_DIR = ROOT / "outputs" / "benchmarks"
+RAW_DIR = ROOT / "benchmarks" / "results"  # real runs: committed next to BENCHMARKS.md, so reports can be rebuilt
+QUICK_RAW_DIR = ROOT / "outputs" / "benchmarks" / "quick"  # smoke runs: scratch, git-ignored
 GiB = 1024**3
 
 
@@ -134,9 +135,11 @@ def write_section(path: Path, name: str, text: str) -> None:
 
 
 def raw_path(name: str, quick: bool) -> Path:
-    """Where a script's raw JSON results go: ``outputs/benchmarks/<name>.json``; quick smoke runs
-    use ``outputs/benchmarks/quick/`` so they never overwrite a real run's raw results."""
-    d = RAW_DIR / "quick" if quick else RAW_DIR
+    """Where a script's raw JSON results go: ``benchmarks/results/<name>.json`` for real runs (kept in
+    the repository beside the ``BENCHMARKS.md`` they produced, so a report can be re-ranked or
+    re-plotted later without re-running); quick smoke runs use ``outputs/benchmarks/quick/`` so they
+    never overwrite a real run's raw results."""
+    d = QUICK_RAW_DIR if quick else RAW_DIR
     d.mkdir(parents=True, exist_ok=True)
     return d / f"{name}.json"
 

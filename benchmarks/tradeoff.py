@@ -71,19 +71,21 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, nargs="+", default=[32, 64, 128, 192])
     p.add_argument("--resolutions", type=int, nargs="+", default=[64, 128])
     p.add_argument("--presets", action="store_true", help="also run preset=draft|balanced|paper (at 128 px)")
-    p.add_argument("--presets-only", action="store_true", help="only the three presets")
+    p.add_argument("--presets-only", action="store_true", help="only the presets")
+    p.add_argument("--preset-names", nargs="+", default=list(PRESETS), choices=PRESETS,
+                   help="which presets --presets / --presets-only run (default all three)")
     p.add_argument("--budget", type=float, default=None, help="training seconds per run (default 300; quick 4)")
     p.add_argument("--steps", type=int, default=None, help="max steps per run (default: reconstruct.steps)")
     p.add_argument("--checkpoints", type=int, default=None, help="evaluations per run (default 4; quick 1)")
     p.add_argument("--near", type=float, default=0.5, help="dB below the front that still counts as near it")
     p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
     p.add_argument("--include-results", type=Path, nargs="*", default=[],
-                   help="raw JSON of earlier runs of this script (outputs/benchmarks/tradeoff*.json) to plot and "
+                   help="raw JSON of earlier runs of this script (benchmarks/results/tradeoff*.json) to plot and "
                         "rank together with this run; their commands are listed")
     p.add_argument("--report-only", action="store_true",
                    help="train nothing: rank and plot the --include-results only (e.g. two runs made side by side)")
     p.add_argument("--raw", type=Path, default=None, help="where this run's raw JSON goes "
-                   "(default outputs/benchmarks/tradeoff.json)")
+                   "(default benchmarks/results/tradeoff.json)")
     common.add_common_args(p)
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -111,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
                                           f"render.num_samples={spp}"]})
     if (args.presets or args.presets_only) and not args.report_only:
         pres_res = 16 if q else 128
-        for name in PRESETS:
+        for name in args.preset_names:
             ov = [f"preset={name}", f"data.resolution={pres_res}"]
             if q:
                 ov.append("render.num_samples=8")
@@ -135,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
             steps = args.steps or int(common.compose(["stage=reconstruct", *ov])["reconstruct"]["steps"])
             cps = [budget * (i + 1) / checkpoints for i in range(checkpoints - 1)]
             r = train_one(scenes[key], ov, budget, cps, 0, True, max_steps=steps)
-            results.append({**cfg, "label": name, "command": this_cmd, "budget": budget, **r})
+            results.append({**cfg, "label": name, "command": this_cmd, "budget": budget, "schedule_steps": steps, **r})
         except Exception as exc:  # noqa: BLE001 - one failed configuration must not lose the others
             log.exception("run failed")
             results.append({**cfg, "label": name, "command": this_cmd, "error": f"{type(exc).__name__}: {exc}"})
@@ -219,10 +221,14 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for i, r in enumerate(results):
         if "error" in r:
-            rows.append([r["label"], "error: " + r["error"][:70], "", "", "", "", "", ""])
+            rows.append([r["label"], "error: " + r["error"][:70], "", "", "", "", "", "", ""])
             continue
         fin = r["final"]
+        sched = r.get("schedule_steps")
+        # what finishing the configuration's own schedule (reconstruct.steps) would take at the measured pace
+        full = common.fmt(sched * r["sec_per_step"] / 60.0, ".0f") if sched and r.get("sec_per_step") else None
         rows.append([r["label"], common.fmt(r["train_seconds"], ".0f"), r["steps"], common.fmt(r["sec_per_step"], ".2f"),
+                     f"{sched} in {full} min" if full is not None else "–",
                      common.fmt(fin.get("psnr_masked")), common.fmt(fin.get("psnr")), common.fmt(fin.get("ssim"), ".3f"),
                      standing(i)])
     body = [
@@ -244,8 +250,8 @@ def main(argv: list[str] | None = None) -> int:
                      "earlier one).", ""]
         body += ["Rows from earlier runs of this script on the same machine, ranked together with this one: "
                  + "; ".join(f"`{c}`" for c in others) + ".", ""]
-    body += common.md_table(["configuration", "train time (s)", "steps", "s/step", "masked PSNR (dB)", "PSNR (dB)",
-                             "SSIM", "Pareto"], rows, "lrrrrrrl")
+    body += common.md_table(["configuration", "train time (s)", "steps", "s/step", "full schedule at that pace",
+                             "masked PSNR (dB)", "PSNR (dB)", "SSIM", "Pareto"], rows, "lrrrrrrrl")
     body += ["", "Pareto front (time s: masked PSNR dB, configuration): "
              + "; ".join(f"{pts[i][0]:.0f}: {pts[i][1]:.2f} ({results[owner[i]]['label']})" for i in front) + "."]
     pres = [i for i, r in enumerate(results) if "preset" in r]

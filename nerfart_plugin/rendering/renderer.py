@@ -8,6 +8,7 @@ midpoints, converts to opacities with ``field.alpha`` and composites:
 
 from __future__ import annotations
 
+import functools
 import inspect
 from typing import Any, Optional, Sequence
 
@@ -22,6 +23,12 @@ from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, strat
 from nerfart_plugin.rendering.volume import weights_from_alpha
 
 __all__ = ["VolumeRenderer"]
+
+
+@functools.lru_cache(maxsize=None)
+def _takes_with_normal(field_type: type) -> bool:
+    """Whether ``field_type.forward`` accepts ``with_normal`` (checked once per class)."""
+    return "with_normal" in inspect.signature(field_type.forward).parameters
 
 
 class VolumeRenderer(nn.Module):
@@ -172,7 +179,7 @@ class VolumeRenderer(nn.Module):
     def _field_call(self, x: Tensor, d: Tensor, with_normals: bool) -> dict[str, Tensor]:
         """``field(x, d)``; ``with_normal=False`` is passed only to fields whose ``forward`` takes it
         (a custom field with the plain ``forward(x, d)`` contract keeps working, normals and all)."""
-        if not with_normals and "with_normal" in inspect.signature(self.field.forward).parameters:
+        if not with_normals and _takes_with_normal(type(self.field)):
             return self.field(x, d, with_normal=False)
         return self.field(x, d)
 
