@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib.util
 import re
 import sys
+import json
 from pathlib import Path
 
 import pytest
@@ -104,6 +105,35 @@ def test_tradeoff_quick(out: Path) -> None:
     assert sum("ON the front" in r for r in rows) >= 1
     assert "earlier runs" in sec and "--encodings grid" in sec  # the included run's command is listed
     assert (out.parent / "figures" / "tradeoff.png").is_file()
+
+
+def _fake_run(label: str, times: list[float], psnrs: list[float], **cfg: object) -> dict:
+    recs = [{"time": t, "psnr_masked": q, "psnr": q + 3, "ssim": 0.9} for t, q in zip(times, psnrs)]
+    return {**cfg, "label": label, "resolution": 128, "command": f"python benchmarks/tradeoff.py --raw {label}",
+            "budget": 200, "schedule_steps": 6000, "records": recs, "final": recs[-1], "train_seconds": times[-1],
+            "steps": 2000, "sec_per_step": 0.1}
+
+
+def test_tradeoff_report_ranks_fronts(out: Path) -> None:
+    """--report-only ranks saved runs: the overall front, the front among SDF backbones (a surface to
+    export), the presets' standing on both, and the projected time of each run's full schedule."""
+    mod = _load("tradeoff")
+    raw = out.parent / "runs.json"
+    raw.write_text(json.dumps([
+        _fake_run("nerf/grid/32spp/128px", [100, 200], [25.0, 27.0], backbone="nerf", encoding="grid", samples=32),
+        _fake_run("volsdf/grid/32spp/128px", [100, 200], [24.0, 26.0], backbone="volsdf", encoding="grid",
+                  samples=32),
+        _fake_run("neus/grid/32spp/128px", [100, 200], [23.0, 25.8], backbone="neus", encoding="grid", samples=32),
+        _fake_run("preset=draft", [40], [20.0], preset="draft"),
+    ]))
+    assert mod.main(["--report-only", "--include-results", str(raw), "--out", str(out)]) == 0
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]] for r in _table_rows(out.read_text())}
+    assert rows["nerf/grid/32spp/128px"][-2:] == ["ON the front", "–"]  # no surface: not in the SDF ranking
+    assert rows["volsdf/grid/32spp/128px"][-2:] == ["off (-1.00 dB)", "ON the front"]
+    assert rows["neus/grid/32spp/128px"][-1] == "near (-0.20 dB)"  # within --near 0.5 dB
+    assert rows["preset=draft"][-2:] == ["ON the front", "ON the front"]
+    assert rows["volsdf/grid/32spp/128px"][3] == "6000 in 10 min"  # 6000 steps x 0.1 s
+    assert "Pareto front among the SDF backbones" in out.read_text()
 
 
 def test_stylization_quick(out: Path) -> None:
