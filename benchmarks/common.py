@@ -172,9 +172,18 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
 
 
 def output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
-    """(markdown file, figures folder) for these arguments."""
-    out = args.out if args.out is not None else (QUICK_OUT if args.quick else BENCHMARKS_MD)
-    figs = args.figures if args.figures is not None else (out.parent / "figures" if args.quick else FIGURES)
+    """(markdown file, figures folder) for these arguments: figures go to ``benchmarks/figures`` only
+    for the real ``BENCHMARKS.md``; any other ``--out`` (or ``--quick``) gets a ``figures/`` folder
+    beside it, and ``--no-write`` (nothing written into a report) puts them beside the quick report,
+    so a scratch report never replaces a committed figure."""
+    out = Path(args.out if args.out is not None else (QUICK_OUT if args.quick else BENCHMARKS_MD))
+    if getattr(args, "no_write", False):
+        default_figs = QUICK_OUT.parent / "figures"
+    elif out.resolve() == BENCHMARKS_MD.resolve():
+        default_figs = FIGURES
+    else:
+        default_figs = out.parent / "figures"
+    figs = args.figures if args.figures is not None else default_figs
     return Path(out), Path(figs)
 
 

@@ -134,6 +134,7 @@ def test_tradeoff_report_ranks_fronts(out: Path) -> None:
     assert rows["preset=draft"][-2:] == ["ON the front", "ON the front"]
     assert rows["volsdf/grid/32spp/128px"][3] == "6000 in 10 min"  # 6000 steps x 0.1 s
     assert "Pareto front among the SDF backbones" in out.read_text()
+    assert (out.parent / "figures" / "tradeoff.png").is_file()  # beside the scratch report, not in benchmarks/
 
 
 def test_stylization_quick(out: Path) -> None:
