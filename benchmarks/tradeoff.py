@@ -43,18 +43,21 @@ NAME = "tradeoff"
 PRESETS = ("draft", "balanced", "paper")
 
 
-def pareto(points: list[tuple[float, float]]) -> list[int]:
-    """Indices of the points (time, psnr) not dominated by another (faster-or-equal and better-or-equal)."""
-    front = []
-    for i, (t, q) in enumerate(points):
-        if not any((t2 <= t and q2 >= q) and (t2 < t or q2 > q) for j, (t2, q2) in enumerate(points) if j != i):
-            front.append(i)
+def pareto(points: list[tuple[float, float]], tol: float = 1.0) -> list[int]:
+    """Indices of the points (time s, psnr) not dominated by another (no slower and no worse, and
+    better in one). Times within ``tol`` seconds count as equal: every run is evaluated at the same
+    budget fractions, and a checkpoint logged at 66.7 s is not faster than one at 66.8 s."""
+    def dominates(a: tuple[float, float], b: tuple[float, float]) -> bool:
+        (t2, q2), (t, q) = a, b
+        return t2 <= t + tol and q2 >= q and (t2 < t - tol or q2 > q)
+
+    front = [i for i, p in enumerate(points) if not any(dominates(o, p) for j, o in enumerate(points) if j != i)]
     return sorted(front, key=lambda i: points[i][0])
 
 
-def best_by(points: list[tuple[float, float]], t: float) -> float:
-    """Best PSNR among points reached within time ``t``."""
-    return max((q for t2, q in points if t2 <= t), default=float("-inf"))
+def best_by(points: list[tuple[float, float]], t: float, tol: float = 1.0) -> float:
+    """Best PSNR among points reached within time ``t`` (+ ``tol`` s, as in ``pareto``)."""
+    return max((q for t2, q in points if t2 <= t + tol), default=float("-inf"))
 
 
 def is_sdf(r: dict[str, Any]) -> bool:
@@ -240,9 +243,10 @@ def main(argv: list[str] | None = None) -> int:
         fin = r["final"]
         sched = r.get("schedule_steps")
         # what finishing the configuration's own schedule (reconstruct.steps) would take at the measured pace
-        full = common.fmt(sched * r["sec_per_step"] / 60.0, ".0f") if sched and r.get("sec_per_step") else None
+        full = sched * r["sec_per_step"] / 60.0 if sched and r.get("sec_per_step") else None
+        full_s = "–" if full is None else (f"{sched} in {full:.0f} min" if full < 120 else f"{sched} in {full / 60:.0f} h")
         rows.append([r["label"], common.fmt(r["train_seconds"], ".0f"), r["steps"], common.fmt(r["sec_per_step"], ".2f"),
-                     f"{sched} in {full} min" if full is not None else "–",
+                     full_s,
                      common.fmt(fin.get("psnr_masked")), common.fmt(fin.get("psnr")), common.fmt(fin.get("ssim"), ".3f"),
                      standing(i), standing(i, sdf_only=True)])
     body = [

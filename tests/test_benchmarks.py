@@ -114,6 +114,14 @@ def _fake_run(label: str, times: list[float], psnrs: list[float], **cfg: object)
             "steps": 2000, "sec_per_step": 0.1}
 
 
+def test_pareto_treats_checkpoint_times_within_a_second_as_equal() -> None:
+    mod = _load("tradeoff")
+    # the same budget checkpoint logged at 66.7 s and 66.8 s: the worse run is not "faster"
+    assert mod.pareto([(66.7, 17.0), (66.8, 24.0), (133.4, 25.0)]) == [1, 2]
+    assert mod.pareto([(30.0, 17.0), (66.8, 24.0)]) == [0, 1]  # really faster: both on the front
+    assert mod.best_by([(66.8, 24.0)], 66.7) == 24.0
+
+
 def test_tradeoff_report_ranks_fronts(out: Path) -> None:
     """--report-only ranks saved runs: the overall front, the front among SDF backbones (a surface to
     export), the presets' standing on both, and the projected time of each run's full schedule."""
