@@ -207,26 +207,37 @@ def main(argv: list[str] | None = None) -> int:
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        f, ax = plt.subplots(figsize=(8, 5))
+        f, ax = plt.subplots(figsize=(11, 5.5))
+        # colour = backbone, line style = encoding, marker size = samples per ray; presets as stars
+        colours = {"nerf": "tab:blue", "volsdf": "tab:orange", "neus": "tab:green"}
+        styles = {"grid": "-", "frequency": ":"}
+        seen: set[str] = set()
         for i, r in enumerate(results):
             recs = [x for x in r.get("records", []) if metric in x]
-            if not recs:
-                continue
-            is_preset = "preset" in r
-            if int(r.get("resolution", 0)) != rank_res:
+            if not recs or int(r.get("resolution", 0)) != rank_res:
                 continue  # other evaluation resolution: not on this PSNR scale
-            ax.plot([x["time"] for x in recs], [x[metric] for x in recs], marker="*" if is_preset else "o",
-                    ms=10 if is_preset else 4, lw=1.5 if is_preset else 0.6, alpha=1.0 if is_preset else 0.5,
-                    label=r["label"] if is_preset or len(results) <= 12 else None)
+            xs, ys = [x["time"] for x in recs], [x[metric] for x in recs]
+            if "preset" in r:
+                pc = {"draft": "tab:purple", "balanced": "tab:red", "paper": "tab:brown"}.get(r["preset"], "black")
+                ax.plot(xs, ys, marker="*", ms=13, lw=1.5, color=pc, label=r["label"], zorder=4)
+                continue
+            group = f"{r.get('backbone')}/{r.get('encoding')}"
+            ax.plot(xs, ys, color=colours.get(r.get("backbone"), "gray"), ls=styles.get(r.get("encoding"), "-"),
+                    marker="o", ms=2 + int(r.get("samples", 32)) / 24, lw=0.8, alpha=0.7,
+                    label=f"{group} (dot size: samples/ray)" if group not in seen else None)
+            seen.add(group)
         fx = [pts[i][0] for i in front]
         fy = [pts[i][1] for i in front]
-        ax.step(fx, fy, where="post", color="black", lw=2, label="Pareto front")
+        ax.step(fx, fy, where="post", color="black", lw=2, label="Pareto front (all)")
         ax.scatter(fx, fy, color="black", zorder=5)
+        sx = [pts[i][0] for i in sdf_front]
+        sy = [pts[i][1] for i in sdf_front]
+        ax.step(sx, sy, where="post", color="black", lw=1.5, ls="--", label="Pareto front (SDF backbones)")
         ax.set_xlabel("training wall time (s, evaluation excluded)")
         ax.set_ylabel("held-out masked PSNR (dB)")
         ax.set_title("head: quality vs time (backbone x encoding x samples x resolution)")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
         f.tight_layout()
         fig.parent.mkdir(parents=True, exist_ok=True)
         f.savefig(fig, dpi=120)
