@@ -363,7 +363,7 @@ def main(argv: list[str] | None = None) -> int:
              f"forward+backward passes ({clip_part:.2f} s isolated = {clip_part / ref:.2f}x the reference), so with "
              f"local contrastive patches the goal cannot be met by rendering speed alone (batching the {1 + k} "
              f"images in one float32 pass instead costs {ref_batched:.2f} s = {ref_batched / ref:.2f}x: a CPU's "
-             "cost grows with the number of images, unlike a GPU's at these sizes). Everything else (both "
+             "cost grows with the number of images; a GPU runs such a batch in parallel, not measurable here). Everything else (both "
              f"render passes, VGG, the loss arithmetic) costs {max(t1['step_no_cache'] - clip_part, 0.0):.2f} s = "
              f"**{max(t1['step_no_cache'] - clip_part, 0.0) / ref:.2f}x** the reference."]
     if sweep:
