@@ -61,8 +61,11 @@ def best_by(points: list[tuple[float, float]], t: float, tol: float = 1.0) -> fl
 
 
 def is_sdf(r: dict[str, Any]) -> bool:
-    """Whether a run's backbone has a surface to export (SDF: volsdf, neus; presets use volsdf)."""
-    return "preset" in r or r.get("backbone") in ("volsdf", "neus")
+    """Whether a run's backbone has a surface to export (its field class's ``is_sdf``; the presets
+    use the default backbone, volsdf)."""
+    from nerfart_plugin import registry
+
+    return "preset" in r or bool(getattr(registry.get("backbone", r.get("backbone", "")), "is_sdf", False))
 
 
 def label(cfg: dict[str, Any]) -> str:
