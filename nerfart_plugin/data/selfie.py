@@ -158,10 +158,18 @@ def run_sfm(
     camera_model: str = "SIMPLE_RADIAL",
     overlap: int = 10,
     seed: int = 0,
+    num_threads: int = 1,
 ) -> Path:
     """COLMAP SfM on ``image_dir``: SIFT, one shared camera, sequential/exhaustive matching,
     incremental mapping. Writes the largest model to ``out_dir/sparse/0`` atomically
     (file by file) and returns that folder.
+
+    Determinism: with ``num_threads=1`` (the default) the cameras are a function of
+    the frames, ``seed`` and the pycolmap version: every RANSAC, the mapper and
+    COLMAP's global PRNG are seeded, and each step runs on one thread. With more
+    threads, feature extraction writes images to the database in completion order
+    and matching verifies pairs in completion order; both change the result from
+    run to run (measured on Beer.mp4: focal 414.6-417.3 px from identical frames).
 
     Raises:
         DataError: no model could be reconstructed.
@@ -169,27 +177,41 @@ def run_sfm(
     import pycolmap
 
     n_images = len(list_images(image_dir))
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="sfm_", dir=out_dir))
     try:
         db = work / "database.db"
+        pycolmap.set_random_seed(seed)
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = camera_model
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = num_threads
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = num_threads
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = seed
+        verification.ransac.num_threads = 1
         log.info("SfM: extracting SIFT features from %d frames in %s", n_images, image_dir)
-        pycolmap.extract_features(
-            db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader, device=pycolmap.Device.cpu
-        )
+        pycolmap.extract_features(db, image_dir, camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
         log.info("SfM: %s matching", matcher)
         if matcher == "sequential":
             pairing = pycolmap.SequentialPairingOptions()
             pairing.overlap = overlap
-            pycolmap.match_sequential(db, pairing_options=pairing, device=pycolmap.Device.cpu)
+            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                      verification_options=verification, device=pycolmap.Device.cpu)
         elif matcher == "exhaustive":
-            pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+            pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
         else:
             raise DataError(f"Unknown data.matcher={matcher!r}: use 'sequential' (videos) or 'exhaustive'.")
         log.info("SfM: incremental mapping")
         opts = pycolmap.IncrementalPipelineOptions()
         opts.random_seed = seed
+        opts.num_threads = num_threads
+        opts.mapper.random_seed = seed
+        opts.mapper.num_threads = num_threads
         recs = pycolmap.incremental_mapping(db, image_dir, work / "models", options=opts)
         if not recs:
             raise DataError(
@@ -226,9 +248,12 @@ def _prepare(
     camera_model: str,
     cache_dir: Optional[Any],
     notes: list[str],
+    sfm_seed: int = 0,
+    sfm_threads: int = 1,
 ) -> tuple[Path, Path, list[Path], Optional[Path]]:
     """Return (image folder, model folder, files defining the scene, mask folder)."""
-    settings = dict(fps=fps, max_frames=max_frames, long=frame_long_side, matcher=matcher, cam=camera_model, v=1)
+    settings = dict(fps=fps, max_frames=max_frames, long=frame_long_side, matcher=matcher, cam=camera_model,
+                    seed=sfm_seed, threads=sfm_threads, v=2)
     if root.is_file():
         if root.suffix.lower() not in VIDEO_EXTS:
             raise DataError(f"{root} is not a video ({'/'.join(VIDEO_EXTS)}) nor a folder of frames: fix data.path.")
@@ -257,7 +282,7 @@ def _prepare(
             notes.append(f"extracted {len(frames)} frames at <= {fps:g} fps from {root.name}")
         else:
             frames = _copy_frames(frame_paths, image_dir, max_frames, frame_long_side)
-        run_sfm(image_dir, cache, matcher=matcher, camera_model=camera_model)
+        run_sfm(image_dir, cache, matcher=matcher, camera_model=camera_model, seed=sfm_seed, num_threads=sfm_threads)
         atomic_write_json(meta_path, {"source": str(root), "settings": settings, "frames": frames})
         notes.append(f"ran COLMAP SfM ({matcher} matching, one shared {camera_model} camera); cached in {cache}")
     files = [meta_path, *[p for p in model_dir.iterdir() if p.is_file()]]
@@ -289,6 +314,8 @@ def load_selfie(
     min_registered: float = 0.5,
     cache_dir: Optional[Any] = None,
     capture: Optional[str] = None,
+    sfm_seed: int = 0,
+    sfm_threads: int = 1,
     **unused: Any,
 ) -> Scene:
     """Load a selfie video / frame folder / COLMAP scene folder (see module doc).
@@ -305,6 +332,10 @@ def load_selfie(
         cache_dir: where ``<name>_<hash>/`` caches go (default: ``nerfart_cache/``
             next to the input).
         capture: force the capture type instead of detecting it.
+        sfm_seed: seed of every random choice in COLMAP (RANSAC, mapper).
+        sfm_threads: threads of each SfM step; 1 (default) makes the cameras a
+            function of the frames (see :func:`run_sfm`), more is faster but not
+            reproducible.
     """
     if unused:
         log.debug("selfie loader ignores options %s", sorted(unused))
@@ -315,7 +346,8 @@ def load_selfie(
         root = require_dir(root, "selfie folder")
     notes: list[str] = []
     image_dir, model_dir, files, mask_dir = _prepare(
-        root, fps, max_frames, frame_long_side, matcher, camera_model, cache_dir, notes
+        root, fps, max_frames, frame_long_side, matcher, camera_model, cache_dir, notes,
+        sfm_seed=int(sfm_seed), sfm_threads=int(sfm_threads),
     )
     model: ColmapModel = read_colmap_model(model_dir)
     frames = list_images(image_dir)
