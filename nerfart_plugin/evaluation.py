@@ -1,4 +1,5 @@
-"""Stylization metrics: CLIP score, CLIP directional similarity, view consistency.
+"""Stylization metrics: CLIP score, CLIP directional similarity, view consistency, an independent
+ImageNet judge, and how much rendering weight lies off the surface.
 
 * CLIP score: mean cosine between the image embedding of each rendered view and
   the target text embedding.
@@ -10,23 +11,33 @@
   error in [0,1] units over pixels visible in both, with an occlusion test on
   the neighbour's depth). Lower is more consistent; report it next to the
   source field's own figure, which is the floor set by sampling and shading.
+* Judge (:class:`ImageNetJudge`): an ImageNet classifier that never guides
+  (EfficientNet-Lite2) classifies held-out views of source and stylized; when
+  the prompt names an ImageNet class, its probability and top-5 rank say
+  whether the stylization is recognisable by a network it was not optimized
+  against.
+* Off-surface weight (:func:`off_surface_weight`): the share of each ray's
+  rendering weight farther than ``delta`` from its expected depth: the cloudy
+  geometry Eq. 7 suppresses.
 """
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import Any, Optional
 
 import torch
 import torch.nn.functional as F
 
 
 @torch.no_grad()
-def clip_scores(guidance, stylized: torch.Tensor, source: torch.Tensor, prompt: str,
-                source_prompt: str) -> dict[str, float]:
-    """``stylized``/``source`` [B,3,H,W] in [0,1] renders of the same views."""
+def clip_scores(guidance, stylized: torch.Tensor, source: torch.Tensor, prompt: str | torch.Tensor,
+                source_prompt: str | torch.Tensor) -> dict[str, float]:
+    """``stylized``/``source`` [B,3,H,W] in [0,1] renders of the same views; the prompts as text or as
+    the guidance's text embeddings [D] (e.g. a source embedding derived from the source views)."""
     e_sty = F.normalize(guidance.encode_image(stylized).float(), dim=-1)
     e_src = F.normalize(guidance.encode_image(source).float(), dim=-1)
-    t = F.normalize(guidance.encode_text([prompt, source_prompt]).float(), dim=-1)
+    emb = [guidance.encode_text([p])[0] if isinstance(p, str) else p for p in (prompt, source_prompt)]
+    t = F.normalize(torch.stack(emb).float().to(e_sty.device), dim=-1)
     img_dir = F.normalize(e_sty - e_src, dim=-1, eps=1e-8)
     txt_dir = F.normalize(t[0] - t[1], dim=-1, eps=1e-8)
     return {
@@ -81,3 +92,82 @@ def view_consistency(frames: list[dict[str, torch.Tensor]], K: torch.Tensor, c2w
         if e is not None:
             errs.append(e)
     return float(sum(errs) / len(errs)) if errs else None
+
+
+class ImageNetJudge:
+    """An independent judge of stylizations toward ImageNet classes (EfficientNet-Lite2, 260 px).
+
+    It is never the guide (``guidance=imagenet`` guides with Lite0), so a rising
+    target probability means the change is visible to a network the
+    optimization did not see, not an adversarial pattern of the guide.
+    """
+
+    def __init__(self, model: str = "lite2", weights: Optional[str] = None) -> None:
+        from nerfart_plugin.guidance.imagenet import VARIANTS, imagenet_classes, load_efficientnet_lite
+
+        self.model = VARIANTS[model].timm_name
+        self.size = VARIANTS[model].input_size
+        self.net = load_efficientnet_lite(model, weights)
+        self.classes = imagenet_classes()
+
+    @torch.no_grad()
+    def probabilities(self, images: torch.Tensor) -> torch.Tensor:
+        """Class probabilities [B,1000] of ``images`` [B,3,H,W] in [0,1] (any size)."""
+        from nerfart_plugin.guidance.imagenet import lite_preprocess
+
+        net = self.net.to(images.device)
+        return net(lite_preprocess(images, self.size)).softmax(-1).float()
+
+    def assess(self, images: torch.Tensor, target: int) -> dict[str, Any]:
+        """Per view: target probability, its rank (0 = top-1) and the top-1 class; plus the means."""
+        p = self.probabilities(images)
+        rank = (p > p[:, target : target + 1]).sum(1)
+        per_view = [{"target_prob": float(p[i, target]), "target_rank": int(rank[i]),
+                     "top1": self.classes.name(int(p[i].argmax())), "top1_prob": float(p[i].max())}
+                    for i in range(p.shape[0])]
+        return {"mean_target_prob": float(p[:, target].mean()), "top5_rate": float((rank < 5).float().mean()),
+                "top1_rate": float((rank < 1).float().mean()), "per_view": per_view}
+
+
+def judge_block(judge: ImageNetJudge, target: int, source: torch.Tensor, stylized: torch.Tensor,
+                view_ids: list[int]) -> dict[str, Any]:
+    """The ``judge`` block of ``metrics.json``: source vs stylized held-out views [B,3,H,W]."""
+    src, sty = judge.assess(source, target), judge.assess(stylized, target)
+    for block in (src, sty):
+        for v, entry in zip(view_ids, block["per_view"]):
+            entry["view"] = int(v)
+    return {"model": judge.model, "target_class": judge.classes.name(target), "target_index": int(target),
+            "views": [int(v) for v in view_ids], "source": src, "stylized": sty,
+            "gain_mean_target_prob": sty["mean_target_prob"] - src["mean_target_prob"],
+            "gain_top5_rate": sty["top5_rate"] - src["top5_rate"]}
+
+
+def off_surface_weight(weights: torch.Tensor, t: torch.Tensor, deltas: torch.Tensor, rays_d_norm: torch.Tensor,
+                       delta: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rendering weight farther than ``delta`` (world units) from each ray's expected depth.
+
+    Args: ``weights`` [R,K]; ``t`` [R,K] section midpoints (ray parameter); ``deltas`` [R,K]
+    section lengths (world); ``rays_d_norm`` [R]; ``delta`` world units.
+    Returns: ``(off [R], total [R])``: weight beyond ``delta`` and the ray's opacity.
+    """
+    total = weights.sum(-1)
+    depth = (weights * t).sum(-1) / total.clamp_min(1e-10)
+    dist = (t - depth[:, None]).abs() * rays_d_norm[:, None]
+    off = (weights * (dist > delta).to(weights.dtype) * (deltas > 0).to(weights.dtype)).sum(-1)
+    return off, total
+
+
+@torch.no_grad()
+def off_surface_share(renderer: Any, batch: dict[str, Any], delta: float = 0.05, chunk: int = 8192) -> float:
+    """Share of a ray batch's total rendering weight lying farther than ``delta`` (world units; the
+    scene is normalized to the unit sphere) from each ray's expected depth (see :func:`off_surface_weight`)."""
+    n = batch["rays_o"].shape[0]
+    off = total = 0.0
+    for s in range(0, n, chunk):
+        sub = {k: (v[s : s + chunk] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
+               for k, v in batch.items()}
+        out = renderer(sub)
+        o, t = off_surface_weight(out["weights"], out["t"], out["deltas"], sub["rays_d"].norm(dim=-1), delta)
+        off += float(o.sum())
+        total += float(t.sum())
+    return off / total if total > 0 else 0.0

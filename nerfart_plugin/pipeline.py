@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import lightning as L
+import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
@@ -139,9 +140,9 @@ class Pipeline:
         self.guidance = build_guidance(g)
         self.perceptual = build_perceptual(g)
         self.real = bool(self.guidance.is_real and getattr(self.perceptual, "is_real", True))
-        self.stamp = "" if self.real else f"_UNSTYLED-{g['name']}"
+        self.stamp = self.guidance.output_stamp() or ("" if self.real else f"_UNSTYLED-{g['name']}")
         if not self.real:
-            log.warning("guidance is not a real pretrained model (%s): every output is stamped %r",
+            log.warning("guidance is not a real pretrained CLIP (%s): every output is stamped %r",
                         g["name"], self.stamp)
         raw = validate_prompt(self.c["prompt"])
         self.prompt = augment_prompt(raw) if self.c.get("prompt_augment", True) else raw
@@ -162,7 +163,8 @@ class Pipeline:
         for note in self.scene.notes:
             log.info("data: %s", note)
         self.setup = decide_setup(self.scene, self.c["render"], ndc=self.dm.ndc)
-        key_src = {"scene": self.scene.content_hash, "data": self.c["data"], "backbone": self.c["backbone"],
+        data_key = {k: v for k, v in self.c["data"].items() if k != "subject"}  # subject: stylization only
+        key_src = {"scene": self.scene.content_hash, "data": data_key, "backbone": self.c["backbone"],
                    "encoding": self.c["encoding"], "render": self.c["render"], "seed": self.c["seed"],
                    "reconstruct": {k: v for k, v in self.c["reconstruct"].items()
                                    if k not in ("val_every", "val_views", "checkpoint_every")}}
@@ -250,7 +252,7 @@ class Pipeline:
 
     # ------------------------------------------------------------------ stage 2
     def stylize(self, recon_ckpt: Path) -> Path:
-        from nerfart_plugin.guidance import default_source_prompt, load_negatives
+        from nerfart_plugin.guidance import default_source_prompt, resolve_negatives
         from nerfart_plugin.systems.base import steps_loader
         from nerfart_plugin.systems.callbacks import AtomicCheckpoint
         from nerfart_plugin.systems.stylization import StylizationSystem, style_views
@@ -258,7 +260,7 @@ class Pipeline:
         sc, exp = self.c["stylize"], self.c["experiment"]
         src_prompt = self.c.get("source_prompt", "auto")
         if src_prompt in (None, "auto"):
-            src_prompt = default_source_prompt(self.scene.capture, has_person=self.scene.masks is not None)
+            src_prompt = default_source_prompt(self.c["data"].get("subject") or "object")
         key = config_hash({"recon": str(recon_ckpt.resolve()) if self.c.get("source_checkpoint") else self.recon_key,
                            "prompt": self.prompt, "source_prompt": src_prompt, "guidance": self.c["guidance"],
                            "experiment": exp, "seed": self.c["seed"],
@@ -274,8 +276,10 @@ class Pipeline:
         atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(self.c)))
         views = style_views(self.scene, self.scene.train_ids, int(sc["resolution"]), self.dm.ndc)
         system = StylizationSystem(sc, exp, *self._components(), self.setup, _renderer_state(recon_ckpt), views,
-                                   self.guidance, self.perceptual, self.prompt, src_prompt, load_negatives(),
-                                   seed=self.c["seed"], out_dir=str(run_dir), stamp=self.stamp)
+                                   self.guidance, self.perceptual, self.prompt, src_prompt,
+                                   resolve_negatives(sc.get("negatives", "auto"), self.guidance, self.prompt),
+                                   seed=self.c["seed"], out_dir=str(run_dir), stamp=self.stamp,
+                                   raw_prompt=self.raw_prompt)
         ckpt = AtomicCheckpoint(run_dir, sc.get("checkpoint_every", 10))
         trainer = _trainer(run_dir, int(sc["steps"]), self.device, [ckpt], self.c["trainer"], limit_val_batches=0)
         last = run_dir / "last.ckpt"
@@ -289,9 +293,13 @@ class Pipeline:
                         "guidance": self.c["guidance"]["name"], "guidance_is_real": self.real,
                         "stamp": self.stamp or None, "experiment": exp, "steps": int(trainer.global_step),
                         "train_seconds_this_process": seconds, "last_step_timings_s": system.timings,
-                        "negatives_excluded": [n for n, _ in getattr(system.neg_sampler, "excluded", [])]
+                        "negatives_kept": len(system.neg_sampler) if system.neg_sampler is not None else 0,
+                        "negatives_excluded": [{"prompt": n, "reason": r} for n, r in system.neg_sampler.excluded]
                         if system.neg_sampler is not None else []})
-        if not self.real:
+        if self.stamp.startswith("_VERIFY"):
+            metrics["WARNING"] = ("VERIFICATION run: guided by an ImageNet classifier standing in for CLIP, "
+                                  "not by CLIP; see the judge block")
+        elif not self.real:
             metrics["WARNING"] = "UNSTYLED by a real model: random or toy guidance weights were used"
         atomic_write_json(run_dir / "metrics.json", metrics)
         with atomic_path(final) as tmp:
@@ -305,7 +313,8 @@ class Pipeline:
     def stylization_outputs(self, system, run_dir: Path) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
         from nerfart_plugin.data.camera_path import orbit_path
-        from nerfart_plugin.evaluation import clip_scores, view_consistency
+        from nerfart_plugin.evaluation import clip_scores, off_surface_share, view_consistency
+        from nerfart_plugin.systems.base import to_device
         from nerfart_plugin.export.video import side_by_side, write_video
         from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8, style_views
 
@@ -315,11 +324,17 @@ class Pipeline:
         eval_views = style_views(self.scene, ids, int(sc["resolution"]), self.dm.ndc)
         sty = torch.stack([system.render_batch(v)["rgb"].permute(2, 0, 1) for v in eval_views])
         src = torch.stack([system.render_batch(v, source=True)["rgb"].permute(2, 0, 1) for v in eval_views])
-        metrics: dict[str, Any] = clip_scores(system.guidance, sty.clamp(0, 1), src.clamp(0, 1), self.prompt,
-                                              system.source_prompt)
+        metrics: dict[str, Any] = clip_scores(system.guidance, sty.clamp(0, 1), src.clamp(0, 1), system.tgt_txt,
+                                              system.src_txt)
         metrics["mean_rgb"] = [float(x) for x in sty.clamp(0, 1).mean((0, 2, 3))]
         metrics["mean_rgb_source"] = [float(x) for x in src.clamp(0, 1).mean((0, 2, 3))]
         metrics["edge_similarity"] = edge_similarity(sty.clamp(0, 1), src.clamp(0, 1))
+        self.save_heldout(run_dir, ids, src, sty)
+        metrics["judge"] = self.judge(src.clamp(0, 1), sty.clamp(0, 1), ids)
+        metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.renderer, to_device(v, self.device))
+                                                       for v in eval_views]))
+        metrics["off_surface_weight_source"] = float(np.mean([off_surface_share(system.source, to_device(v, self.device))
+                                                              for v in eval_views]))
         # camera-path video, source | stylized, and view consistency along it
         n = int(sc.get("video_frames", 24))
         c2ws = orbit_path(self.scene, n)
@@ -335,7 +350,7 @@ class Pipeline:
             src_frames.append(a)
             sty_frames.append(s)
             frames.append(side_by_side(image_to_uint8(a["rgb"]), image_to_uint8(s["rgb"]),
-                                       labels=("source", "stylized" + (" (UNSTYLED: toy/random)" if self.stamp else ""))))
+                                       labels=("source", "stylized" + (f" ({self.stamp.strip('_')})" if self.stamp else ""))))
         write_video(frames, run_dir / f"video{self.stamp}.mp4", fps=int(sc.get("video_fps", 12)))
         if not self.dm.ndc:
             Kd = K.to(self.device)
@@ -346,6 +361,40 @@ class Pipeline:
         if self.c["export"].get("enabled", True):
             metrics.update(self.compare_meshes(system, run_dir))
         return metrics
+
+    def save_heldout(self, run_dir: Path, ids: list[int], src: torch.Tensor, sty: torch.Tensor) -> None:
+        """``heldout/source_<view>.png`` and ``heldout/stylized_<view>.png`` at the stylization resolution."""
+        from PIL import Image
+
+        from nerfart_plugin.systems.stylization import image_to_uint8
+
+        for i, a, b in zip(ids, src, sty):
+            for name, img in (("source", a), ("stylized", b)):
+                with atomic_path(run_dir / "heldout" / f"{name}_{int(i):04d}.png") as tmp:
+                    Image.fromarray(image_to_uint8(img.permute(1, 2, 0))).save(tmp, format="PNG")
+
+    def judge(self, src: torch.Tensor, sty: torch.Tensor, ids: list[int]) -> dict[str, Any]:
+        """The independent ImageNet judge's verdict on held-out views (see :class:`ImageNetJudge`), or why
+        it did not run (the prompt names no ImageNet class, or its weights package is missing)."""
+        from nerfart_plugin.errors import WeightsMissingError
+        from nerfart_plugin.evaluation import ImageNetJudge, judge_block
+        from nerfart_plugin.guidance.imagenet import imagenet_classes
+
+        try:
+            target = imagenet_classes().find(self.raw_prompt)
+        except ImportError as exc:  # timm missing
+            return {"skipped": f"the judge needs timm ({exc}): pip install -e '.[imagenet]'"}
+        if target is None:
+            return {"skipped": f"the prompt {self.raw_prompt!r} names no ImageNet class"}
+        try:
+            judge = ImageNetJudge()
+        except WeightsMissingError as exc:
+            return {"skipped": str(exc)}
+        block = judge_block(judge, target, src, sty, ids)
+        log.info("judge (%s, held-out views %s): P(%s) %.4f -> %.4f, top-5 %.0f%% -> %.0f%%", block["model"], ids,
+                 block["target_class"], block["source"]["mean_target_prob"], block["stylized"]["mean_target_prob"],
+                 100 * block["source"]["top5_rate"], 100 * block["stylized"]["top5_rate"])
+        return block
 
     # ------------------------------------------------------------------ meshes
     def export_mesh(self, field, stem: Path):

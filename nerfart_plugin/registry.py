@@ -30,7 +30,7 @@ _PROVIDERS: dict[str, tuple[str, ...]] = {
     "backbone": ("nerfart_plugin.fields",),
     "encoding": ("nerfart_plugin.fields",),
     "data": ("nerfart_plugin.data",),
-    "guidance": ("nerfart_plugin.guidance",),
+    "guidance": ("nerfart_plugin.guidance", "nerfart_plugin.guidance.imagenet"),
     "exporter": ("nerfart_plugin.export",),
 }
 

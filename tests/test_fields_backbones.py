@@ -112,6 +112,17 @@ def test_neus_cos_anneal_and_volsdf_beta() -> None:
     assert neus.cos_anneal_ratio == 0.5
     neus.update_step(500, 1000)
     assert neus.cos_anneal_ratio == 1.0
+    # checkpointed: a loaded, annealed field renders with ratio 1, and a stylization restarting its
+    # step count at 0 does not restart the anneal
+    fresh = build_field({"name": "neus", **SMALL, "anneal_steps": 100}, ENCODINGS["frequency"])
+    fresh.load_state_dict(neus.state_dict())
+    assert fresh.cos_anneal_ratio == 1.0
+    fresh.update_step(0, 100)
+    assert fresh.cos_anneal_ratio == 1.0
+    old = {k: v for k, v in neus.state_dict().items() if k != "cos_anneal"}  # a checkpoint from before
+    fresh2 = build_field({"name": "neus", **SMALL, "anneal_steps": 100}, ENCODINGS["frequency"])
+    fresh2.load_state_dict(old)
+    assert fresh2.cos_anneal_ratio == 1.0
     assert 15 < float(neus.inv_s.detach()) < 25  # exp(10 * 0.3)
     vol = build_field({"name": "volsdf", **SMALL, "beta_init": 0.05, "beta_min": 1e-3}, ENCODINGS["frequency"])
     torch.testing.assert_close(vol.beta, torch.tensor(0.05))

@@ -41,10 +41,11 @@ def test_augment_prompt() -> None:
 
 
 def test_source_prompt_and_validation() -> None:
-    assert default_source_prompt("object", True) == "a photo of a person"
-    assert default_source_prompt("forward_facing", False) == "a photo"
+    assert default_source_prompt("person") == "a photo of a person"
+    assert default_source_prompt("object") == "a photo"  # a masked object is not a person
+    assert default_source_prompt("scene") == "a photo"
     with pytest.raises(ConfigError):
-        default_source_prompt("panorama", False)
+        default_source_prompt("panorama")
     assert validate_prompt("  Fauvism ") == "Fauvism"
     for bad in ("", "   \t\n", None):
         with pytest.raises(ConfigError, match="prompt"):
@@ -101,3 +102,48 @@ def test_negative_exclusion_by_similarity(caplog: pytest.LogCaptureFixture) -> N
     assert len(all_p) == all_e.shape[0] == 3
     with pytest.raises(ConfigError, match="threshold"):
         NegativeSampler(g, ["red"], "red")
+
+
+def test_exclusion_by_meaning() -> None:
+    """Negatives that depict the target itself are dropped by meaning, whatever their embedding score."""
+    from nerfart_plugin.guidance.prompts import exclusion_reason
+
+    vg_raw, vg = "Vincent van Gogh", augment_prompt("Vincent van Gogh")
+    for neg, cat in [("Vincent van Gogh", "artists"), ("Self-Portrait by Van Gogh", "portrait"),
+                     ("Oil painting", "painting_styles"), ("Mona Lisa by Leonardo da Vinci", "portrait")]:
+        assert exclusion_reason(neg, cat, [vg, vg_raw]) is not None, neg
+    for neg, cat in [("Edvard Munch", "artists"), ("Cubism", "painting_styles"), ("Pixar character", "characters")]:
+        assert exclusion_reason(neg, cat, [vg, vg_raw]) is None, neg  # other styles stay negatives
+    assert "joker" in exclusion_reason("The Joker", "characters", ["joker"])
+    assert "pixar" in exclusion_reason("Pixar character", "characters", ["Pixar"])
+    assert "#disney" in exclusion_reason("disney princess", "disney", ["a Pixar movie"])  # category rule
+    assert "#zombie" in exclusion_reason("female zombie", "zombie", ["Zombie"])
+    assert exclusion_reason("Batman", "characters", ["Tolkien Elf"]) is None
+
+
+def test_sampler_logs_and_records_reasons(caplog: pytest.LogCaptureFixture) -> None:
+    from nerfart_plugin.guidance.prompts import load_negative_pairs
+
+    g = ToyGuidance()
+    target = augment_prompt("Vincent van Gogh")
+    with caplog.at_level(logging.INFO):
+        s = NegativeSampler(g, load_negative_pairs(), target, threshold=1.0, raw_prompt="Vincent van Gogh")
+    excluded = dict(s.excluded)
+    assert "Vincent van Gogh" in excluded and "Self-Portrait by Van Gogh" in excluded
+    assert all(isinstance(r, str) and r for r in excluded.values())
+    assert "'Self-Portrait by Van Gogh' (" in caplog.text
+    assert "Edvard Munch" in s.prompts and "Vincent van Gogh" not in s.prompts
+
+
+def test_negative_sources(tmp_path, official_path) -> None:
+    from nerfart_plugin.guidance.prompts import resolve_negatives
+
+    g = ToyGuidance()
+    assert len(resolve_negatives("official", g, "Joker")) == 131
+    assert resolve_negatives("official", g, "Joker") == parse_negative_prompts(official_path.read_text(encoding="utf-8"))
+    assert len(resolve_negatives("auto", g, "Joker")) == len(resolve_negatives("package", g, "Joker")) > 190
+    user = tmp_path / "mine.txt"
+    user.write_text("#mine\n1.cubism\n2.a wax figure\n", encoding="utf-8")
+    assert resolve_negatives(str(user), g, "Joker") == [("mine", "cubism"), ("mine", "a wax figure")]
+    with pytest.raises(DataError, match="stylize.negatives"):
+        resolve_negatives(str(tmp_path / "absent.txt"), g, "Joker")

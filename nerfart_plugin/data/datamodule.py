@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 #: The shipped default scene (31 views of a head at 256x256, see assets/head/SOURCE.md).
 DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "assets" / "head"
 
-_DM_KEYS = {"kind", "name", "path", "batch_rays", "ndc", "background_color", "background", "seed",
+_DM_KEYS = {"kind", "name", "path", "batch_rays", "ndc", "background_color", "background", "seed", "subject",
             "steps_per_epoch", "render_frames", "_target_"}
 
 

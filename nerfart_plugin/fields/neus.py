@@ -47,7 +47,19 @@ class NeuSField(SDFField):
         self.variance = nn.Parameter(torch.tensor(float(init_variance) / self.variance_lr_scale))
         self.inv_s_max = float(inv_s_max)
         self.anneal_steps = int(anneal_steps)
-        self.cos_anneal_ratio = 1.0 if self.anneal_steps <= 0 else 0.0
+        # checkpointed state: a loaded reconstruction renders with the ratio it ended at (1 after
+        # annealing), and a stylization continuing from it does not restart the anneal
+        self.register_buffer("cos_anneal", torch.tensor(1.0 if self.anneal_steps <= 0 else 0.0))
+
+    @property
+    def cos_anneal_ratio(self) -> float:
+        """Cos-annealing ratio r in [0, 1] of the alpha estimate (1 = NeuS' unbiased estimate)."""
+        return float(self.cos_anneal)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:  # noqa: ANN001
+        # checkpoints from before the ratio was saved: they come from finished runs, fully annealed
+        state_dict.setdefault(prefix + "cos_anneal", torch.tensor(1.0))
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
     def inv_s(self) -> Tensor:
@@ -59,7 +71,9 @@ class NeuSField(SDFField):
         return float(1.0 / self.inv_s.detach())
 
     def update_step(self, global_step: int, total_steps: int) -> None:
-        self.cos_anneal_ratio = 1.0 if self.anneal_steps <= 0 else min(1.0, global_step / self.anneal_steps)
+        """Advance the cos-anneal schedule (linear over ``anneal_steps``); it never goes back."""
+        target = 1.0 if self.anneal_steps <= 0 else min(1.0, global_step / self.anneal_steps)
+        self.cos_anneal.fill_(max(float(self.cos_anneal), target))
 
     def alpha(self, out: dict[str, Tensor], deltas: Tensor, dirs: Tensor) -> Tensor:
         """NeuS section opacity [R,K]: from sdf, ``dot(dir, grad sdf)`` and deltas (``alpha_mode=gradient``),

@@ -1,15 +1,18 @@
 """Guidance: CLIP / toy encoders, VGG perceptual features, prompts and negatives.
 
 Registry kind "guidance": "clip" (:class:`~.clip.CLIPGuidance`), "toy"
-(:class:`~.toy.ToyGuidance`). Build from config with :func:`build_guidance`
+(:class:`~.toy.ToyGuidance`), "imagenet" (:class:`~.imagenet.ImageNetGuidance`, a
+verification guide: a real ImageNet classifier standing in for CLIP; needs the
+``imagenet`` extra, imported on first use). Build from config with :func:`build_guidance`
 and :func:`build_perceptual`.
 
 Config (dict or OmegaConf) keys and defaults::
 
-    name: clip                    # clip | toy
+    name: clip                    # clip | toy | imagenet
     allow_random_weights: false   # tests only: random CLIP/VGG weights
     allow_download: null          # null -> env NERFART_ALLOW_DOWNLOAD
-    perceptual: null              # null -> vgg for clip, edges for toy; or vgg | edges
+    perceptual: null              # null -> vgg for clip, edges for toy, imagenet for imagenet;
+                                  # or vgg | edges | imagenet (Lite0's first stages)
     clip: {model: ViT-B-32, pretrained: openai, cache_dir: null, quick_gelu: null,
            resize_mode: squash, model_overrides: null}
     vgg:  {weights: DEFAULT, layers: [relu1_2, relu2_2, relu3_3, relu4_3], max_size: null}
@@ -34,6 +37,7 @@ from nerfart_plugin.guidance.prompts import (
     augment_prompt,
     default_source_prompt,
     load_negatives,
+    resolve_negatives,
     validate_prompt,
 )
 from nerfart_plugin.guidance.toy import ToyGuidance
@@ -49,6 +53,7 @@ __all__ = [
     "augment_prompt",
     "default_source_prompt",
     "load_negatives",
+    "resolve_negatives",
     "validate_prompt",
     "random_patches",
     "build_guidance",
@@ -95,11 +100,20 @@ def build_perceptual(cfg: Any) -> nn.Module:
     :class:`EdgePerceptual` (default for ``name: toy``). Both expose
     ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
     c = _plain(cfg)
-    kind = c.get("perceptual") or ("edges" if c.get("name", "clip") == "toy" else "vgg")
+    defaults = {"toy": "edges", "imagenet": "imagenet"}
+    kind = c.get("perceptual") or defaults.get(c.get("name", "clip"), "vgg")
     if kind == "edges":
         return EdgePerceptual(**dict(c.get("edges") or {}))
+    if kind == "imagenet":
+        from nerfart_plugin.guidance.imagenet import LitePerceptual
+
+        sub = dict(c.get("lite_perceptual") or {})
+        try:
+            return LitePerceptual(**{k: (tuple(v) if k == "stages" else v) for k, v in sub.items()})
+        except TypeError as exc:
+            raise ConfigError(f"guidance.lite_perceptual has invalid keys {sorted(sub)}: {exc}") from exc
     if kind != "vgg":
-        raise ConfigError(f"guidance.perceptual={kind!r}; use vgg or edges")
+        raise ConfigError(f"guidance.perceptual={kind!r}; use vgg, edges or imagenet")
     sub = dict(c.get("vgg") or {})
     try:
         return Perceptual(

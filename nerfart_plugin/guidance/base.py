@@ -29,6 +29,9 @@ class Guidance(nn.Module, abc.ABC):
 
     name: str = "base"
     is_real: bool = False
+    #: suffix of every output file of a run guided by this encoder when it is not a real CLIP
+    #: (None: derived from ``is_real``: ``_UNSTYLED-<name>`` for toy / random weights)
+    stamp: str | None = None
     input_size: int = 224
     embed_dim: int = 0
 
@@ -91,6 +94,17 @@ class Guidance(nn.Module, abc.ABC):
                 self._text_cache[t] = e
         dev = self.device
         return torch.stack([self._text_cache[t].to(dev) for t in texts])
+
+    def source_embedding(self, prompt: str, images: Tensor) -> Tensor:
+        """The source "text" embedding ``[D]`` of Eq. 4 for ``prompt``, given renders of the source
+        ``images`` [B,3,H,W]; text encoders ignore the images, others may derive it from them."""
+        return self.encode_text([prompt])[0]
+
+    def output_stamp(self) -> str:
+        """The suffix stamped on this run's outputs: "" for real CLIP weights."""
+        if self.stamp is not None:
+            return self.stamp
+        return "" if self.is_real else f"_UNSTYLED-{self.name}"
 
     def train(self, mode: bool = True) -> "Guidance":
         """Guidance is frozen: it stays in eval mode even inside a module put in train mode."""

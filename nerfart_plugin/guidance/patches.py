@@ -1,47 +1,76 @@
-"""Random local patches for the local CLIP losses (Eq. 6)."""
+"""Random local patches for the local contrastive loss (Eq. 6)."""
 
 from __future__ import annotations
+
+import math
+from typing import Optional
 
 import torch
 from torch import Tensor
 from torchvision.ops import roi_align
 
 
+def patch_side(H: int, W: int, area_frac: float) -> int:
+    """Side (pixels) of a square patch covering ``area_frac`` of an H x W view, at most min(H, W).
+
+    The paper's "1/10 of the input" is an AREA: the official code crops 112 px
+    patches from a 270x480 canvas (0.097 of it). At 128x128 this gives 40 px.
+    """
+    if not 0.0 < area_frac <= 1.0:
+        raise ValueError(f"area_frac must be in (0, 1], got {area_frac}")
+    return max(2, min(H, W, int(round(math.sqrt(area_frac * H * W)))))
+
+
+def subject_box(opacity: Tensor, threshold: float = 0.5) -> Optional[tuple[int, int, int, int]]:
+    """Bounding box ``(x0, y0, x1, y1)`` (pixels, exclusive ends) of ``opacity`` [H,W] > threshold, or None."""
+    ys, xs = torch.nonzero(opacity > threshold, as_tuple=True)
+    if ys.numel() == 0:
+        return None
+    return int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
+
+
 def random_patches(
     img: Tensor,
     num: int,
-    size_frac: float = 0.1,
+    area_frac: float = 0.1,
     out_size: int = 224,
     generator: torch.Generator | None = None,
     return_boxes: bool = False,
+    region: Optional[tuple[int, int, int, int]] = None,
 ) -> Tensor | tuple[Tensor, Tensor]:
     """Crop ``num`` random square patches and resample them to ``out_size``.
 
-    Patch side = ``round(size_frac * min(H, W))`` pixels (at least 2; paper: a
-    local patch side of 1/10 of the image side), top-left corner uniform over
-    valid positions, source image uniform over the batch. Resampling uses
-    torchvision's ``roi_align`` (bilinear, ``aligned=True``, adaptive sampling
-    so downscaling averages instead of aliasing); differentiable w.r.t. ``img``
-    and without copying the image per patch.
+    Patch side = :func:`patch_side` (``area_frac`` of the view's area). Patch
+    centres are uniform over ``region`` (``(x0, y0, x1, y1)`` pixels, e.g.
+    :func:`subject_box` of the source render's opacity, so patches land on the
+    subject, not on empty background; default: the whole view), then the patch
+    is shifted to lie inside the image. Source image uniform over the batch.
+    Resampling uses torchvision's ``roi_align`` (bilinear, ``aligned=True``,
+    adaptive sampling so downscaling averages instead of aliasing);
+    differentiable w.r.t. ``img`` and without copying the image per patch.
 
     Args:
         img: ``[B,3,H,W]`` images.
         num: number of patches.
-        size_frac: patch side as a fraction of the shorter image side, in (0, 1].
+        area_frac: patch area as a fraction of the view's area, in (0, 1].
         out_size: output side (e.g. the guidance's ``input_size``).
         generator: CPU ``torch.Generator`` for reproducible draws.
         return_boxes: also return ``[num,5]`` boxes ``(b, x0, y0, x1, y1)`` in pixels.
+        region: where patch centres may fall.
     Returns: ``[num,3,out_size,out_size]`` (and the boxes).
     """
     if img.dim() != 4:
         raise ValueError(f"random_patches expects [B,C,H,W], got {tuple(img.shape)}")
-    if not 0.0 < size_frac <= 1.0:
-        raise ValueError(f"size_frac must be in (0, 1], got {size_frac}")
     B, _, H, W = img.shape
-    side = max(2, min(H, W, int(round(size_frac * min(H, W)))))
+    side = patch_side(H, W, area_frac)
+    rx0, ry0, rx1, ry1 = region if region is not None else (0, 0, W, H)
+    rx0, ry0 = max(0, min(rx0, W - 1)), max(0, min(ry0, H - 1))
+    rx1, ry1 = max(rx0 + 1, min(rx1, W)), max(ry0 + 1, min(ry1, H))
     b = torch.randint(0, B, (num,), generator=generator)
-    x0 = torch.randint(0, W - side + 1, (num,), generator=generator)
-    y0 = torch.randint(0, H - side + 1, (num,), generator=generator)
+    cx = rx0 + torch.rand(num, generator=generator) * (rx1 - rx0)
+    cy = ry0 + torch.rand(num, generator=generator) * (ry1 - ry0)
+    x0 = (cx - side / 2).round().long().clamp(0, W - side)
+    y0 = (cy - side / 2).round().long().clamp(0, H - side)
     boxes = torch.stack([b, x0, y0, x0 + side, y0 + side], dim=1).to(img.dtype)
     crops = roi_align(
         img,

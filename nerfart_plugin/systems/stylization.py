@@ -5,12 +5,22 @@ Loss, Eq. 8:  L = λd·L_dir^r + λg·L_con^g + λl·L_con^l + λp·L_per + λr�
              (or Eq. 3, absolute, for the CLIP-NeRF-style ablation ``experiment=absolute_dir``);
   * L_con^g  Eq. 5/6, InfoNCE of the whole view vs. the target (positive) and sampled
              negative style prompts, τ = 0.07;
-  * L_con^l  Eq. 5/6, the same on random local patches (side 1/10 of the view by default);
+  * L_con^l  Eq. 5/6, the same on random local patches (1/10 of the view's AREA by default, as the
+             official release: 112 px on 270x480), centred on the subject (the source render's opacity);
   * L_per    Eq. 9, VGG16 perceptual distance to the source render;
   * L_reg    Eq. 7, Σ_ij w_i w_j |d_i − d_j| on ray weights (suppresses cloudy geometry).
 Each step renders one view without grad, takes dL/dI, and back-propagates it
 through the field patch by patch at identical samples (Section 4.4,
 :mod:`nerfart_plugin.rendering.two_pass`). Terms with λ = 0 are not computed.
+SDF backbones also keep the eikonal term of the reconstruction
+(``experiment.lambda_eikonal``, not part of Eq. 8) so that the moving surface
+stays a distance field, as the official release does.
+
+Geometry can move: the occupancy grid of the reconstruction is re-estimated
+from the stylized field every ``stylize.occupancy_update_every`` steps, with
+an SDF band of ``stylize.occupancy_band`` cells around the current surface,
+so the surface is sampled wherever it goes (not only inside the source's
+shell) and free space near it is sampled for Eq. 7 to act on.
 """
 
 from __future__ import annotations
@@ -26,6 +36,7 @@ import torch
 from nerfart_plugin.data.rays import ndc_rays, pixel_rays
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.guidance import NegativeSampler, random_patches
+from nerfart_plugin.guidance.patches import subject_box
 from nerfart_plugin.losses import (
     absolute_clip_loss,
     contrastive_loss,
@@ -80,15 +91,17 @@ class StylizationSystem(RenderSystem):
         views: training view ray batches at the stylization resolution (:func:`style_views`).
         guidance / perceptual: frozen encoders (not saved in checkpoints).
         prompt / source_prompt: target text (after augmentation) and source text.
-        negatives: negative style prompts (package list by default).
+        negatives: negative style prompts, plain or ``(category, prompt)`` pairs
+            (:func:`nerfart_plugin.guidance.prompts.resolve_negatives`).
         seed: run seed. out_dir: run folder. stamp: suffix for file names
             (e.g. ``_UNSTYLED-toy`` when the guidance is not a real CLIP).
+        raw_prompt: the prompt as typed (before augmentation), for the negatives' exclusion rules.
     """
 
     def __init__(self, cfg: dict, experiment: dict, backbone_cfg: dict, encoding_cfg: dict, render_cfg: dict,
                  setup: SceneSetup, source_state: dict, views: list[dict], guidance: Any, perceptual: Any,
-                 prompt: str, source_prompt: str, negatives: list[str], seed: int = 0,
-                 out_dir: Optional[str] = None, stamp: str = "") -> None:
+                 prompt: str, source_prompt: str, negatives: list, seed: int = 0,
+                 out_dir: Optional[str] = None, stamp: str = "", raw_prompt: Optional[str] = None) -> None:
         super().__init__()
         self.automatic_optimization = False
         self.cfg, self.exp = dict(cfg), dict(experiment)
@@ -107,6 +120,7 @@ class StylizationSystem(RenderSystem):
         self.views = views
         self.prompt, self.source_prompt = prompt, source_prompt
         self.negatives = negatives
+        self.raw_prompt = raw_prompt or prompt
         self.seed = int(seed)
         self.out_dir = Path(out_dir) if out_dir else None
         self.stamp = stamp
@@ -121,8 +135,13 @@ class StylizationSystem(RenderSystem):
             "local": float(self.exp.get("lambda_local", 0.1)),
             "perceptual": float(self.exp.get("lambda_perceptual", 2.0)),
             "reg": float(self.exp.get("lambda_reg", 0.1)),
-            "eikonal": float(self.cfg.get("lambda_eikonal", 0.1)) if self.field.is_sdf and not self.freeze_geometry else 0.0,
+            "eikonal": (float(self.exp.get("lambda_eikonal", 0.1))
+                        if self.field.is_sdf and not self.freeze_geometry else 0.0),
         }
+        occ = self.renderer.occupancy
+        self.occupancy_every = 0 if self.freeze_geometry or occ is None else int(self.cfg.get("occupancy_update_every", 8))
+        if self.occupancy_every > 0:  # the SDF band the moving surface is sampled in (world units)
+            occ.sdf_band = max(occ.sdf_band, float(self.cfg.get("occupancy_band", 3.0)) * occ.cell_size)
         self._cache: dict[int, dict[str, Any]] = {}
         self.timings: dict[str, float] = {}
 
@@ -144,22 +163,28 @@ class StylizationSystem(RenderSystem):
             m.to(self.device)
         g = self.guidance
         self.tgt_txt = g.encode_text([self.prompt])[0]
-        self.src_txt = g.encode_text([self.source_prompt])[0]
+        ids = np.linspace(0, len(self.views) - 1, min(8, len(self.views))).round().astype(int).tolist()
+        src_imgs = torch.cat([self.source_view(i)["img"] for i in dict.fromkeys(ids)])
+        self.src_txt = g.source_embedding(self.source_prompt, src_imgs)
         self.neg_sampler = None
         if self.lambdas["global"] > 0 or self.lambdas["local"] > 0:
+            threshold = self.cfg.get("negative_threshold")
             self.neg_sampler = NegativeSampler(g, self.negatives, self.prompt,
-                                               threshold=float(self.cfg.get("negative_threshold", 0.85)),
-                                               num_per_step=int(self.cfg.get("num_negatives", 64)))
+                                               threshold=None if threshold in (None, "auto") else float(threshold),
+                                               num_per_step=int(self.cfg.get("num_negatives", 64)),
+                                               raw_prompt=self.raw_prompt)
 
     @torch.no_grad()
     def source_view(self, i: int) -> dict[str, Any]:
-        """Cached I_src of view ``i`` ([1,3,H,W]), its CLIP embedding and perceptual features."""
+        """Cached I_src of view ``i`` ([1,3,H,W]), its guidance embedding, perceptual features and the
+        subject's bounding box (source opacity > 0.5; None if the view shows nothing)."""
         if i not in self._cache:
             v = self.views[i]
             out = self.source.render_chunked(to_device(v, self.device), chunk=int(self.cfg.get("chunk", 4096)),
                                              with_normals=False)
             img = out["rgb"].reshape(v["H"], v["W"], 3).permute(2, 0, 1)[None].clamp(0, 1)
-            entry = {"img": img, "emb": self.guidance.encode_image(img)}
+            entry = {"img": img, "emb": self.guidance.encode_image(img),
+                     "box": subject_box(out["opacity"].reshape(v["H"], v["W"]))}
             if self.lambdas["perceptual"] > 0:
                 entry["feats"] = [f.detach() for f in self.perceptual.features(img)]
             self._cache[i] = entry
@@ -178,10 +203,10 @@ class StylizationSystem(RenderSystem):
         need_emb = lam["dir"] > 0 or lam["global"] > 0
         need_local = self.neg_sampler is not None and lam["local"] > 0
         inputs = [img] if need_emb else []
-        if need_local:  # Eq. 6: random patches, side local_patch_frac of the view, upsampled to CLIP's input
+        if need_local:  # Eq. 6: random patches of local_patch_frac of the view's area, on the subject
             inputs.append(random_patches(img, int(self.cfg.get("local_patches", 4)),
                                          float(self.cfg.get("local_patch_frac", 0.1)),
-                                         self.guidance.input_size, generator=g))
+                                         self.guidance.input_size, generator=g, region=src["box"]))
         encoded = self.guidance.encode_images(inputs) if inputs else []  # one CLIP pass for view + patches
         emb = encoded[0] if need_emb else None
         if lam["dir"] > 0:
@@ -207,6 +232,7 @@ class StylizationSystem(RenderSystem):
         self.field.update_step(step, self.total_steps)
         g = torch.Generator().manual_seed(step_seed(self.seed, step))
         torch.manual_seed(step_seed(self.seed, step) + 1)
+        self.follow_geometry(step)
         i = self.view_for_step(step)
         view = to_device(self.views[i], self.device)
         H, W = view["H"], view["W"]
@@ -254,6 +280,14 @@ class StylizationSystem(RenderSystem):
 
             pair = [to_image(src["img"][0].permute(1, 2, 0)), to_image(img.detach()[0].permute(1, 2, 0))]
             save_image_grid(pair, self.out_dir / "renders" / f"step_{step:05d}{self.stamp}.png")
+
+    @torch.no_grad()
+    def follow_geometry(self, step: int) -> bool:
+        """Re-estimate the occupancy grid from the stylized field every ``occupancy_update_every`` steps
+        (all cells), so rays find the surface wherever the stylization moves it. Returns True if updated."""
+        if self.occupancy_every <= 0 or step % self.occupancy_every:
+            return False
+        return self.renderer.occupancy.update(self.field, step, force=True)
 
     def configure_optimizers(self) -> Any:
         lr, lr_mlp = float(self.cfg.get("lr", 2e-3)), float(self.cfg.get("lr_mlp", 5e-4))

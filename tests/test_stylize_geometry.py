@@ -1,0 +1,74 @@
+"""Geometry can move while stylizing: the occupancy grid follows the stylized field (issue: the
+reconstruction's band used to confine the surface to a one-cell shell, leaving holes)."""
+
+from __future__ import annotations
+
+import torch
+
+from nerfart_plugin.guidance import ToyGuidance
+from nerfart_plugin.guidance.vgg import EdgePerceptual
+from nerfart_plugin.systems.base import build_renderer
+from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.systems.stylization import StylizationSystem, camera_batch
+
+BACKBONE = {"name": "volsdf", "hidden_dim": 32, "n_layers": 2, "feature_dim": 16, "radius": 0.3,
+            "color_hidden_dim": 32, "color_layers": 1, "color_normal": False, "beta_init": 0.01}
+ENCODING = {"name": "grid", "resolution": 16, "n_components": 4}
+RENDER = {"num_samples": 32, "occupancy": {"resolution": 32, "threshold": 0.01, "update_every": 16}}
+
+
+def setup() -> SceneSetup:
+    return SceneSetup(capture="object", bound=1.0, background_model=False, background_color=[1.0, 1.0, 1.0],
+                      ndc=False, occupancy_resolution=32, num_samples=32, has_masks=True)
+
+
+def ring_rays(radius: float, n: int = 64) -> dict:
+    """Rays along -z passing the centre at distance ``radius`` (tangent-ish to a sphere of that size)."""
+    a = torch.linspace(0, 2 * torch.pi, n + 1)[:-1]
+    o = torch.stack([radius * a.cos(), radius * a.sin(), torch.full_like(a, 2.0)], -1)
+    d = torch.tensor([0.0, 0.0, -1.0]).expand(n, 3)
+    return {"rays_o": o, "rays_d": d.clone(), "near": torch.full((n,), 0.5), "far": torch.full((n,), 3.5)}
+
+
+def system_for(cfg: dict) -> StylizationSystem:
+    torch.manual_seed(0)
+    src = build_renderer(BACKBONE, ENCODING, RENDER, setup())
+    src.occupancy.update(src.field, 0, force=True)  # the reconstruction's grid: a shell around r = 0.3
+    views = [camera_batch(torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]), torch.eye(4)[:3], 16, 16,
+                          0.5, 3.5, False)]
+    return StylizationSystem({"steps": 10, **cfg}, {"lambda_global": 0.0, "lambda_local": 0.0},
+                             BACKBONE, ENCODING, RENDER, setup(), src.state_dict(), views, ToyGuidance(),
+                             EdgePerceptual(), "red", "a photo", ["blue"])
+
+
+def grow_surface(system: StylizationSystem, by: float) -> None:
+    """Move the stylized surface outward by ``by`` (world units): sdf -> sdf - by."""
+    with torch.no_grad():
+        system.field.geo_net.out.bias[0] -= by
+
+
+def test_surface_moved_beyond_the_band_renders_without_holes() -> None:
+    followed = system_for({"occupancy_update_every": 8})
+    frozen_grid = system_for({"occupancy_update_every": 0})
+    rays = ring_rays(0.5)  # misses the source sphere (r = 0.3), hits the grown one (r = 0.6)
+    with torch.no_grad():
+        assert float(followed.renderer.render_chunked(rays)["opacity"].mean()) < 0.05
+    for s in (followed, frozen_grid):
+        grow_surface(s, 0.3)  # far outside the source's band (one cell diagonal = 0.11)
+        s.follow_geometry(0)
+    with torch.no_grad():
+        hit = followed.renderer.render_chunked(rays)["opacity"]
+        hole = frozen_grid.renderer.render_chunked(rays)["opacity"]
+    assert float(hit.min()) > 0.95, "the moved surface must be sampled everywhere"
+    assert float(hole.mean()) < 0.1, "without following, the reconstruction's grid skips the new surface"
+    # the source renderer (I_src of Eq. 4/9) keeps the reconstruction's grid and geometry
+    with torch.no_grad():
+        assert float(followed.source.render_chunked(rays)["opacity"].max()) < 0.05
+    assert followed.renderer.occupancy.sdf_band >= 3 * followed.renderer.occupancy.cell_size
+
+
+def test_frozen_geometry_keeps_the_grid() -> None:
+    s = system_for({"occupancy_update_every": 8, "freeze_geometry": True})
+    before = s.renderer.occupancy.occupied.clone()
+    assert not s.follow_geometry(0)
+    assert torch.equal(before, s.renderer.occupancy.occupied)
