@@ -35,7 +35,8 @@ from nerfart_plugin.data.images import find_mask_folder, list_images, match_mask
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.errors import DataError
+from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
+from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.registry import register
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
 
@@ -230,13 +231,35 @@ def run_sfm(
         shutil.rmtree(work, ignore_errors=True)
 
 
-# --------------------------------------------------------------------------- loader
-def _undistort(arr: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    import cv2
+def check_sfm_camera_model(name: str) -> str:
+    """``name`` if COLMAP can fit it to the frames and the result can be undistorted, else ConfigError."""
+    import pycolmap
 
-    if not np.any(dist):
-        return arr
-    return cv2.undistort(arr, K, dist, None, K)
+    usable = [m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR")]
+    if name not in usable:
+        raise ConfigError(f"data.camera_model={name!r} is not a COLMAP camera model this loader can use; pick one of "
+                          f"{', '.join(usable)} (SIMPLE_RADIAL for phone videos, OPENCV_FISHEYE for action cameras).")
+    return name
+
+
+# --------------------------------------------------------------------------- loader
+def _undistortion(model: ColmapModel, source: Path, notes: list[str]) -> list[UndistortMaps]:
+    """Undistortion tables per image (one per COLMAP camera), built with pycolmap for any model.
+
+    Raises:
+        DataError: a camera model without a pinhole view (spherical), naming it.
+    """
+    by_camera: dict[int, UndistortMaps] = {}
+    for i, cid in enumerate(model.camera_ids):
+        if cid not in by_camera:
+            by_camera[cid] = colmap_maps(model.camera(i), f"{source} (camera {cid})")
+    maps = [by_camera[c] for c in model.camera_ids]
+    moved = sorted({model.camera_models[i] for i, m in enumerate(maps) if not m.identity})
+    if moved:
+        valid = min(m.valid_fraction for m in maps)
+        notes.append(f"removed {'/'.join(moved)} lens distortion from the images with pycolmap's camera model "
+                     f"(pinhole K kept; {valid:.1%} of each view maps inside the source image, the rest is 0)")
+    return maps
 
 
 def _prepare(
@@ -341,6 +364,7 @@ def load_selfie(
         log.debug("selfie loader ignores options %s", sorted(unused))
     if path is None:
         raise DataError("No input given for data=selfie: set data.path=/path/to/video.mp4 (or a folder of frames).")
+    check_sfm_camera_model(camera_model)
     root = Path(path).expanduser()
     if not root.is_file():
         root = require_dir(root, "selfie folder")
@@ -372,21 +396,18 @@ def load_selfie(
         raise DataError(f"COLMAP model {model_dir} has cameras of different sizes; use one image size for all frames.")
     W1, H1 = target_size(W0, H0, resolution)
     sx, sy = W1 / W0, H1 / H0
+    maps = _undistortion(model, model_dir, notes)
     imgs = []
     for i, p in enumerate(paths):
         arr = read_image(p)
         if arr.shape[:2] != (H0, W0):
             raise DataError(f"{p} is {arr.shape[1]}x{arr.shape[0]} but its COLMAP camera is {W0}x{H0}: images and model do not match.")
-        arr = _undistort(arr, model.K[i], model.dist[i])
-        imgs.append(arr)
-    if np.any(model.dist):
-        notes.append(f"removed {model.camera_models[0]} lens distortion from the images (pinhole K kept)")
+        imgs.append(remap(arr, maps[i]))
     images = np.stack(imgs)
     masks, mask_paths = None, []
     if use_masks and mask_dir is not None:
         mask_paths = match_masks(paths, list_images(mask_dir, notes), notes)
-        masks = np.stack([_undistort(read_image(p, (W0, H0), gray=True), model.K[i], model.dist[i])
-                          for i, p in enumerate(mask_paths)])
+        masks = np.stack([remap(read_image(p, (W0, H0), gray=True), maps[i]) for i, p in enumerate(mask_paths)])
     if (W1, H1) != (W0, H0):
         import torch
         import torch.nn.functional as F
@@ -396,7 +417,7 @@ def load_selfie(
         if masks is not None:
             masks = F.interpolate(torch.from_numpy(masks)[:, None], size=(H1, W1), mode="bilinear",
                                   antialias=True)[:, 0].clamp(0, 1).numpy()
-    K = model.K.copy()
+    K = np.stack([m.K for m in maps])
     K[:, 0, :] *= sx
     K[:, 1, :] *= sy
     if capture is None:
