@@ -5,8 +5,12 @@ Layout::
     scene/
       cameras.npz | cameras_sphere.npz   world_mat_i (K[R|t] projection, 4x4 or 3x4),
                                          scale_mat_i (4x4 normalization), i = 0..N-1
-      images/     *.png|*.jpg            camera i <-> i-th image in sorted order
-      matte/ | mask/  (optional)         foreground mattes
+      images/ | image/  *.png|*.jpg      camera i <-> i-th image in sorted order
+      matte/ | mask/ | masks/ (optional) foreground mattes
+
+Both naming schemes load: the NeRF-Art/VolSDF one (``images/``, ``matte/``,
+``cameras.npz``) and the NeuS/IDR/DTU one (``image/``, ``mask/``,
+``cameras_sphere.npz``), in any mix.
 
 The camera of view ``i`` is recovered from ``P = world_mat_i @ scale_mat_i`` by an
 RQ decomposition (``cv2.decomposeProjectionMatrix``), as IDR's
@@ -34,6 +38,20 @@ from nerfart_plugin.registry import register
 log = logging.getLogger(__name__)
 
 CAMERA_FILES = ("cameras.npz", "cameras_sphere.npz")
+#: image folder names, in order of preference (VolSDF/NeRF-Art, NeuS/IDR/DTU)
+IMAGE_FOLDERS = ("images", "image")
+
+
+def find_image_folder(root: Path) -> Path:
+    """``images/`` or ``image/`` under ``root``; DataError listing what was looked for."""
+    for name in IMAGE_FOLDERS:
+        if (root / name).is_dir():
+            return root / name
+    have = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
+    raise DataError(
+        f"No image folder in {root}: looked for {' or '.join(n + '/' for n in IMAGE_FOLDERS)} (found "
+        f"{', '.join(have) or 'no folders'}); put the views in images/ (or NeuS's image/)."
+    )
 
 
 def load_K_Rt_from_P(P: np.ndarray, source: str = "") -> tuple[np.ndarray, np.ndarray]:
@@ -120,8 +138,8 @@ def load_h3ds(
     """Load an IDR/VolSDF/NeuS scene folder.
 
     Args:
-        path: scene folder (``images/``, ``cameras.npz`` or ``cameras_sphere.npz``,
-            optional ``matte/``/``mask/``).
+        path: scene folder (``images/`` or ``image/``, ``cameras.npz`` or
+            ``cameras_sphere.npz``, optional ``matte/``/``mask/``).
         resolution: long image side in pixels after resizing (None: native).
         holdout_every: every n-th view goes to ``val_ids``.
         use_masks: load mattes when present (-> capture "object").
@@ -147,11 +165,12 @@ def load_h3ds(
                 "for LLFF poses_bounds.npy use data=llff, for a video or COLMAP model use data=selfie."
             )
         cam_path = found[0]
-    image_paths = list_images(root / "images", notes)
+    image_dir = find_image_folder(root)
+    image_paths = list_images(image_dir, notes)
     Ks, c2w, scales = read_cameras_npz(cam_path)
     if len(Ks) != len(image_paths):
         raise DataError(
-            f"{cam_path} has {len(Ks)} cameras but {root / 'images'} has {len(image_paths)} images; camera i is "
+            f"{cam_path} has {len(Ks)} cameras but {image_dir} has {len(image_paths)} images; camera i is "
             "paired with the i-th image in sorted order, so the counts must agree: remove the images without "
             "cameras (or regenerate the cameras file for all images)."
         )
@@ -175,7 +194,8 @@ def load_h3ds(
     elif use_masks:
         notes.append("no matte/ or mask/ folder: loading without masks")
     capture, reason = detect_capture(c2w, masks)
-    notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}")
+    layout = f"views from {image_dir.name}/" + (f", mattes from {mask_dir.name}/" if mask_paths else "")
+    notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}; {layout}")
     dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
     near = np.maximum(dist - 1.0, 0.05)
     far = dist + 1.0
