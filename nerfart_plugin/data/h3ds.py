@@ -29,7 +29,14 @@ from typing import Any, Optional
 import numpy as np
 
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.images import find_mask_folder, list_images, match_masks, read_image_set
+from nerfart_plugin.data.images import (
+    choose_resolution,
+    find_mask_folder,
+    image_size,
+    list_images,
+    match_masks,
+    read_image_set,
+)
 from nerfart_plugin.data.normalize import detect_capture
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import DataError
@@ -129,7 +136,7 @@ def read_cameras_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @register("data", "h3ds")
 def load_h3ds(
     path: Any,
-    resolution: Optional[int] = None,
+    resolution: Any = "auto",
     holdout_every: int = 8,
     use_masks: bool = True,
     cameras_file: Optional[str] = None,
@@ -140,7 +147,9 @@ def load_h3ds(
     Args:
         path: scene folder (``images/`` or ``image/``, ``cameras.npz`` or
             ``cameras_sphere.npz``, optional ``matte/``/``mask/``).
-        resolution: long image side in pixels after resizing (None: native).
+        resolution: ``"auto"`` (long side min(native, 480): the 256x256 head stays
+            native), None (native) or the long image side in pixels
+            (:func:`~nerfart_plugin.data.images.choose_resolution`).
         holdout_every: every n-th view goes to ``val_ids``.
         use_masks: load mattes when present (-> capture "object").
         cameras_file: which npz to use (default: ``cameras.npz``, else
@@ -174,7 +183,8 @@ def load_h3ds(
             "paired with the i-th image in sorted order, so the counts must agree: remove the images without "
             "cameras (or regenerate the cameras file for all images)."
         )
-    images, (w0, h0), (w1, h1) = read_image_set(image_paths, resolution)
+    long_side = choose_resolution(resolution, image_size(image_paths[0]), notes)
+    images, (w0, h0), (w1, h1) = read_image_set(image_paths, long_side)
     sx, sy = w1 / w0, h1 / h0
     if (w1, h1) != (w0, h0):
         Ks = Ks.copy()
@@ -186,7 +196,7 @@ def load_h3ds(
     mask_dir = find_mask_folder(root)
     if use_masks and mask_dir is not None:
         mask_paths = match_masks(image_paths, list_images(mask_dir, notes), notes)
-        masks, (mw, mh), _ = read_image_set(mask_paths, resolution, gray=True, what="matte")
+        masks, (mw, mh), _ = read_image_set(mask_paths, long_side, gray=True, what="matte")
         if (mw, mh) != (w0, h0):
             raise DataError(
                 f"Mattes in {mask_dir} are {mw}x{mh} but images are {w0}x{h0}: resize the mattes to the image size."
@@ -212,6 +222,6 @@ def load_h3ds(
         source=root,
         notes=notes,
         hash_paths=[cam_path, *image_paths, *mask_paths],
-        opts=dict(kind="h3ds", resolution=resolution, use_masks=use_masks, cameras=cam_path.name),
+        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name),
         holdout_every=holdout_every,
     )

@@ -31,7 +31,14 @@ import numpy as np
 
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
-from nerfart_plugin.data.images import find_mask_folder, list_images, match_masks, read_image, target_size
+from nerfart_plugin.data.images import (
+    choose_resolution,
+    find_mask_folder,
+    list_images,
+    match_masks,
+    read_image,
+    target_size,
+)
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
 from nerfart_plugin.data.scene import Scene
@@ -326,7 +333,7 @@ def selfie_cache_meta(scene: Scene) -> Optional[dict]:
 @register("data", "selfie")
 def load_selfie(
     path: Any,
-    resolution: Optional[int] = None,
+    resolution: Any = "auto",
     holdout_every: int = 8,
     use_masks: bool = True,
     fps: float = 15.0,
@@ -346,7 +353,9 @@ def load_selfie(
     Args:
         path: video file, folder of frames (``folder/`` or ``folder/images/``), or a
             folder with ``images/`` and ``sparse/0``.
-        resolution: long side of the returned images (None: the SfM frame size).
+        resolution: long side of the returned images: ``"auto"`` (min(native, 480):
+            the paper's 270x480 for 540x960 frames, video frames stay at
+            ``frame_long_side``), None (the frames' size) or pixels.
         fps, max_frames, frame_long_side: frame sampling (paper: 15 fps, <= 100, 480).
         matcher: "sequential" (video order) or "exhaustive".
         camera_model: COLMAP camera model of the single shared camera; distortion is
@@ -394,7 +403,7 @@ def load_selfie(
     W0, H0 = int(model.sizes[0][0]), int(model.sizes[0][1])
     if any(tuple(s) != (W0, H0) for s in model.sizes):
         raise DataError(f"COLMAP model {model_dir} has cameras of different sizes; use one image size for all frames.")
-    W1, H1 = target_size(W0, H0, resolution)
+    W1, H1 = target_size(W0, H0, choose_resolution(resolution, (W0, H0), notes))
     sx, sy = W1 / W0, H1 / H0
     maps = _undistortion(model, model_dir, notes)
     imgs = []
@@ -461,6 +470,6 @@ def load_selfie(
         source=root,
         notes=notes,
         hash_paths=[*files, *paths, *mask_paths],
-        opts=dict(kind="selfie", resolution=resolution, use_masks=use_masks, capture=capture),
+        opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture),
         holdout_every=holdout_every,
     )
