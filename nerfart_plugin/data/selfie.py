@@ -3,14 +3,18 @@
 Pipeline, as in NeRF-Art's selfie captures:
 
 1. frames: a video is sampled at ``fps`` (15) frames per second, evenly
-   subsampled to at most ``max_frames`` (100) and resized so the long side is
-   ``frame_long_side`` (480 -> 270x480 portrait / 480x270 landscape). A folder of
-   frames (``folder/`` or ``folder/images/``) is subsampled/resized the same way.
+   subsampled to at most ``max_frames`` (100) and shrunk so the long side is at
+   most ``frame_long_side`` (480 -> 270x480 portrait / 480x270 landscape; smaller
+   videos keep their size). A folder of frames (``folder/`` or ``folder/images/``)
+   is subsampled/resized the same way.
 2. SfM with pycolmap: SIFT extraction with ONE camera shared by all frames,
    sequential matching (``matcher="exhaustive"`` for unordered frames),
-   incremental mapping. Frames and model are cached in
-   ``<cache_dir or next to the input>/nerfart_cache/<name>_<hash>/`` keyed by a
-   SHA-256 of the input and the settings; a rerun with the same input loads it.
+   incremental mapping. Frames and model are cached in ``<base>/<name>_<hash>/``
+   keyed by a SHA-256 of the input and the settings; a rerun with the same input
+   loads it. Nothing is written next to the data unless asked (:func:`cache_base`):
+   ``<base>`` is ``<output_root>/cache/selfie`` by default (the pipeline passes
+   ``cache_root=<output_root>/cache``), ``nerfart_cache/`` beside the input with
+   ``cache_dir="beside_data"``, or an explicit ``cache_dir``.
 3. An existing COLMAP model (``folder/sparse/0`` with ``folder/images/``) is
    used as is, without re-running SfM.
 
@@ -64,6 +68,18 @@ def _save_png(arr_u8: np.ndarray, path: Path) -> None:
         Image.fromarray(arr_u8).save(tmp, format="PNG")
 
 
+def _frame_size(w: int, h: int, long_side: Optional[int]) -> tuple[int, int]:
+    """(W, H) with the long side at most ``long_side`` (frames are never upsampled)."""
+    return target_size(w, h, long_side) if long_side and max(w, h) > long_side else (w, h)
+
+
+def _shrink(img: Any, long_side: Optional[int]) -> Any:
+    from PIL import Image
+
+    size = _frame_size(img.width, img.height, long_side)
+    return img if size == img.size else img.resize(size, Image.Resampling.LANCZOS)
+
+
 def extract_frames(
     video: Path, out_dir: Path, fps: float = 15.0, max_frames: int = 100, long_side: Optional[int] = 480
 ) -> list[dict]:
@@ -111,16 +127,12 @@ def extract_frames(
                 elif t + 1e-6 < next_t:
                     continue
                 img = frame.to_image()
-                if long_side:
-                    img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
+                img = _shrink(img, long_side)
                 kept.append((t, img))
                 last = None
                 next_t = t + 1.0 / fps - 0.5 / 1000.0
             if targets and last is not None:  # header duration beyond the last frame (VFR phone videos)
-                img = last[1].to_image()
-                if long_side:
-                    img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
-                kept.append((last[0], img))
+                kept.append((last[0], _shrink(last[1].to_image(), long_side)))
     except DataError:
         raise
     except Exception as e:  # av.error.* and friends
@@ -150,7 +162,7 @@ def _copy_frames(paths: list[Path], out_dir: Path, max_frames: int, long_side: O
         from PIL import Image
 
         with Image.open(p) as im:
-            size = target_size(im.width, im.height, long_side)
+            size = _frame_size(im.width, im.height, long_side)
         arr = read_image(p, size)
         name = p.stem + ".png"
         _save_png((arr * 255 + 0.5).astype(np.uint8), out_dir / name)
@@ -280,10 +292,11 @@ def _prepare(
     notes: list[str],
     sfm_seed: int = 0,
     sfm_threads: int = 1,
+    cache_root: Optional[Any] = None,
 ) -> tuple[Path, Path, list[Path], Optional[Path]]:
     """Return (image folder, model folder, files defining the scene, mask folder)."""
     settings = dict(fps=fps, max_frames=max_frames, long=frame_long_side, matcher=matcher, cam=camera_model,
-                    seed=sfm_seed, threads=sfm_threads, v=2)
+                    seed=sfm_seed, threads=sfm_threads, v=3)
     if root.is_file():
         if root.suffix.lower() not in VIDEO_EXTS:
             raise DataError(f"{root} is not a video ({'/'.join(VIDEO_EXTS)}) nor a folder of frames: fix data.path.")
@@ -300,8 +313,7 @@ def _prepare(
     if not root.is_file() and len(frame_paths) < 3:
         raise DataError(f"Only {len(frame_paths)} frame(s) in {frame_dir}: SfM needs many overlapping views (>= 20).")
     key = hash_files(inputs, extra=options_key(**settings))[:16]
-    base = Path(cache_dir) if cache_dir is not None else (root.parent if root.is_file() else root) / "nerfart_cache"
-    cache = base / f"{root.stem}_{key}"
+    cache = cache_base(root, cache_dir, cache_root) / f"{root.stem}_{key}"
     image_dir, model_dir, meta_path = cache / "images", cache / "sparse" / "0", cache / "frames.json"
     if meta_path.is_file() and (model_dir / "images.bin").is_file():
         notes.append(f"loaded cached frames and SfM from {cache}")
@@ -317,6 +329,25 @@ def _prepare(
         notes.append(f"ran COLMAP SfM ({matcher} matching, one shared {camera_model} camera); cached in {cache}")
     files = [meta_path, *[p for p in model_dir.iterdir() if p.is_file()]]
     return image_dir, model_dir, files, mask_dir
+
+
+def cache_base(root: Path, cache_dir: Optional[Any] = None, cache_root: Optional[Any] = None) -> Path:
+    """The folder that holds the ``<name>_<hash>/`` frame + SfM caches of input ``root``.
+
+    Args:
+        root: the video file or frame folder.
+        cache_dir: None or ``"auto"``: ``<cache_root>/selfie``; ``"beside_data"``:
+            ``nerfart_cache/`` next to the video (inside a frame folder), the only
+            choice that writes into the data folder; anything else: that folder.
+        cache_root: the project's cache folder; the pipeline passes
+            ``<output_root>/cache``; None: ``outputs/cache`` (the default
+            ``output_root``, relative to the working directory).
+    """
+    if cache_dir is None or str(cache_dir) in ("auto", ""):
+        return Path(cache_root if cache_root is not None else Path("outputs") / "cache").expanduser() / "selfie"
+    if str(cache_dir) == "beside_data":
+        return (root.parent if root.is_file() else root) / "nerfart_cache"
+    return Path(cache_dir).expanduser()
 
 
 def selfie_cache_meta(scene: Scene) -> Optional[dict]:
@@ -343,6 +374,7 @@ def load_selfie(
     camera_model: str = "SIMPLE_RADIAL",
     min_registered: float = 0.5,
     cache_dir: Optional[Any] = None,
+    cache_root: Optional[Any] = None,
     capture: Optional[str] = None,
     sfm_seed: int = 0,
     sfm_threads: int = 1,
@@ -361,8 +393,10 @@ def load_selfie(
         camera_model: COLMAP camera model of the single shared camera; distortion is
             removed from the returned images (K stays the pinhole part).
         min_registered: minimal fraction of frames SfM must register.
-        cache_dir: where ``<name>_<hash>/`` caches go (default: ``nerfart_cache/``
-            next to the input).
+        cache_dir: where ``<name>_<hash>/`` caches go: None (``<cache_root>/selfie``),
+            ``"beside_data"`` (``nerfart_cache/`` next to the input) or a folder
+            (:func:`cache_base`).
+        cache_root: the project's cache folder (the pipeline: ``<output_root>/cache``).
         capture: force the capture type instead of detecting it.
         sfm_seed: seed of every random choice in COLMAP (RANSAC, mapper).
         sfm_threads: threads of each SfM step; 1 (default) makes the cameras a
@@ -380,7 +414,7 @@ def load_selfie(
     notes: list[str] = []
     image_dir, model_dir, files, mask_dir = _prepare(
         root, fps, max_frames, frame_long_side, matcher, camera_model, cache_dir, notes,
-        sfm_seed=int(sfm_seed), sfm_threads=int(sfm_threads),
+        sfm_seed=int(sfm_seed), sfm_threads=int(sfm_threads), cache_root=cache_root,
     )
     model: ColmapModel = read_colmap_model(model_dir)
     frames = list_images(image_dir)
