@@ -29,7 +29,7 @@ def _check_rotations(c2w: torch.Tensor) -> None:
 
 
 def test_registry_names():
-    assert {"h3ds", "llff", "selfie"} <= set(registry.names("data"))
+    assert {"h3ds", "llff", "selfie", "nerfstudio"} <= set(registry.names("data"))
 
 
 def test_girl_h3ds(shared_data):

@@ -15,7 +15,7 @@ from nerfart_plugin.data.images import choose_resolution
 from nerfart_plugin.errors import ConfigError
 
 
-@pytest.mark.parametrize("kind", ["h3ds", "selfie", "llff"])
+@pytest.mark.parametrize("kind", ["h3ds", "selfie", "llff", "nerfstudio"])
 def test_config_default_is_auto(kind: str) -> None:
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         assert compose("config", overrides=[f"data={kind}"]).data.resolution == "auto"

@@ -20,6 +20,8 @@ from nerfart_plugin.data.colmap import project, read_colmap_model, reprojection_
 from nerfart_plugin.data.undistort import colmap_camera, colmap_maps, opencv_maps, remap
 from nerfart_plugin.errors import DataError
 
+from camera_helpers import interior_error, look_at, pattern_seen_by, pinhole_pattern
+
 W, H = 160, 120
 FX, FY, CX, CY = 110.0, 112.0, 81.3, 58.6
 
@@ -137,24 +139,6 @@ def test_spherical_and_malformed_models_are_refused() -> None:
 
 
 # --------------------------------------------------------------------------- a COLMAP scene per model
-def _pattern(xy: np.ndarray) -> np.ndarray:
-    """Smooth RGB in [0.1, 0.9] as a function of the normalized ray (x, y) = (X/Z, Y/Z)."""
-    x, y = xy[..., 0], xy[..., 1]
-    return np.stack([0.5 + 0.4 * np.sin(3 * x + 1) * np.cos(2 * y), 0.5 + 0.4 * np.cos(2.5 * y - 0.5),
-                     0.5 + 0.4 * np.sin(2 * x - 3 * y)], -1)
-
-
-def _look_at(centre: np.ndarray) -> np.ndarray:
-    """OpenCV c2w [4,4] at ``centre`` looking at the origin, y roughly down (world -z up)."""
-    z = -centre / np.linalg.norm(centre)
-    x = np.cross(z, [0.0, 0.0, -1.0])
-    x /= np.linalg.norm(x)
-    M = np.eye(4)
-    M[:3, :3] = np.stack([x, np.cross(z, x), z], 1)
-    M[:3, 3] = centre
-    return M
-
-
 def write_colmap_scene(root: Path, model: str, params: list, n_views: int = 8) -> tuple[Path, list[np.ndarray]]:
     """``root/images`` (pattern images seen through the lens) + ``root/sparse/0`` (pycolmap-written)."""
     import pycolmap
@@ -165,12 +149,11 @@ def write_colmap_scene(root: Path, model: str, params: list, n_views: int = 8) -
     rec.add_camera_with_trivial_rig(cam)
     pts = np.random.default_rng(0).uniform(-0.9, 0.9, (60, 3))
     (root / "images").mkdir(parents=True)
-    rays = cam.cam_from_img(np.stack(np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5), -1).reshape(-1, 2))
-    img = (np.clip(np.nan_to_num(_pattern(rays.reshape(H, W, 2))), 0, 1) * 255 + 0.5).astype(np.uint8)
+    img = pattern_seen_by(cam, W, H)
     c2ws = []
     for i in range(n_views):
         a = 2 * np.pi * i / n_views
-        c2w = _look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 0.4]))
+        c2w = look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 0.4]))
         c2ws.append(c2w)
         w2c = np.linalg.inv(c2w)
         uv = cam.img_from_cam(pts @ w2c[:3, :3].T + w2c[:3, 3])
@@ -204,13 +187,10 @@ def test_colmap_scene_of_any_model_loads_undistorted(tmp_path: Path, model: str)
     assert s.images.shape == (8, H, W, 3) and any(f"removed {model} lens distortion" in n for n in s.notes)
     K = s.K[0].double().numpy()
     np.testing.assert_allclose(K, m.K[0], rtol=1e-6)
-    v, u = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
-    expected = _pattern(np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], -1))
+    expected = pinhole_pattern(K, W, H)
     img = s.images[3].numpy()
-    inside = (img > 0).any(-1)
-    inside[:2], inside[-2:], inside[:, :2], inside[:, -2:] = False, False, False, False
+    err, inside = interior_error(img, expected)
     assert inside.mean() > 0.5
-    err = np.abs(img - expected)[inside].mean()
     raw = np.asarray(Image.open(root / "images" / "003.png"), dtype=np.float64) / 255
     assert err < 0.01, err
     assert np.abs(raw - expected)[inside].mean() > 3 * err  # the loader's output is not the raw image

@@ -204,3 +204,51 @@ def match_masks(images: Sequence[Path], mask_files: Sequence[Path], notes: list[
     )
     notes.append(msg)
     return chosen
+
+
+def read_rgba(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Read an image at its native size as float32 in [0,1]: (rgb [H,W,3], alpha [H,W] or None).
+
+    Images with an alpha channel (RGBA, LA, palette with transparency) return their
+    alpha; the RGB values are the stored (straight, not premultiplied) colours.
+
+    Raises:
+        DataError: unreadable, truncated or zero-length file.
+    """
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            has_alpha = im.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (
+                im.mode == "P" and "transparency" in im.info)
+            arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    except (OSError, ValueError, SyntaxError) as e:
+        raise DataError(
+            f"Cannot read image {path} ({e.__class__.__name__}: {e}): the file is corrupt or truncated; "
+            "re-export or delete it (and its frame) from the scene."
+        ) from e
+    return (arr[..., :3], arr[..., 3]) if has_alpha else (arr, None)
+
+
+def resize_float(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize a float image [H,W] or [H,W,C] to ``size`` = (W, H) with Lanczos per channel, clipped to [0,1]."""
+    if (arr.shape[1], arr.shape[0]) == tuple(size):
+        return arr
+    chans = arr[..., None] if arr.ndim == 2 else arr
+    out = np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(chans[..., c], dtype=np.float32))
+                               .resize(tuple(size), Image.Resampling.LANCZOS)) for c in range(chans.shape[-1])], -1)
+    out = np.clip(out, 0.0, 1.0)
+    return out[..., 0] if arr.ndim == 2 else out
+
+
+def resize_premultiplied(rgb: np.ndarray, alpha: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Resize straight-alpha ``rgb`` [H,W,3] and ``alpha`` [H,W] without dark fringes (premultiplied filtering).
+
+    Returns straight colours again (0 where the resized alpha is 0) and the resized alpha.
+    """
+    if (rgb.shape[1], rgb.shape[0]) == tuple(size):
+        return rgb, alpha
+    a = resize_float(alpha, size)
+    pre = resize_float(rgb * alpha[..., None], size)
+    straight = np.where(a[..., None] > 1e-4, pre / np.maximum(a[..., None], 1e-4), 0.0)
+    return np.clip(straight, 0.0, 1.0).astype(np.float32), a
