@@ -158,6 +158,7 @@ class Pipeline:
         dcfg.setdefault("background_color", self.c["render"].get("background_color"))
         dcfg["seed"] = self.c["seed"]
         dcfg["batch_rays"] = self.c["reconstruct"]["batch_rays"]
+        dcfg["cache_root"] = str(self.root / "cache")  # loaders' caches (selfie frames + SfM), never beside the data
         self.dm = SceneDataModule(dcfg)
         self.scene = self.dm.load()
         for note in self.scene.notes:

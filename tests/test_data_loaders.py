@@ -13,6 +13,7 @@ from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import default_scene_path
 from nerfart_plugin.data.llff import read_poses_bounds
 from nerfart_plugin.data.normalize import detect_capture
+from nerfart_plugin.errors import DataError
 
 
 def _angle_to_origin_deg(c2w: torch.Tensor) -> np.ndarray:
@@ -28,7 +29,7 @@ def _check_rotations(c2w: torch.Tensor) -> None:
 
 
 def test_registry_names():
-    assert {"h3ds", "llff", "selfie"} <= set(registry.names("data"))
+    assert {"h3ds", "llff", "selfie", "nerfstudio"} <= set(registry.names("data"))
 
 
 def test_girl_h3ds(shared_data):
@@ -150,3 +151,26 @@ def test_default_scene_matches_source(shared_data):
     b = load_scene("h3ds", shared_data / "girl", resolution=256)
     assert torch.allclose(a.K, b.K, atol=1e-3) and torch.allclose(a.c2w, b.c2w, atol=1e-4)
     assert (a.images - b.images).abs().mean() < 0.02
+
+
+def test_neus_idr_dtu_layout(shared_data, tmp_path):
+    """image/ + mask/ + cameras_sphere.npz (NeuS's DTU release), DTU-style names: 000000.png vs 000.png."""
+    girl = shared_data / "girl"
+    root = tmp_path / "dtu_like"
+    (root / "image").mkdir(parents=True)
+    (root / "mask").mkdir()
+    for i, p in enumerate(sorted((girl / "images").iterdir())):
+        (root / "image" / f"{i:06d}{p.suffix}").symlink_to(p)
+    for i, p in enumerate(sorted((girl / "matte").iterdir())):
+        (root / "mask" / f"{i:03d}.png").symlink_to(p)
+    (root / "cameras_sphere.npz").symlink_to(girl / "cameras_sphere.npz")
+    s = load_scene("h3ds", root, resolution=48)
+    ref = load_scene("h3ds", girl, resolution=48, cameras_file="cameras_sphere.npz")
+    assert s.image_names[:2] == ["000000.jpg", "000001.jpg"] and s.capture == "object"
+    for a, b in ((s.images, ref.images), (s.masks, ref.masks), (s.c2w, ref.c2w), (s.K, ref.K)):
+        assert torch.equal(a, b)
+    assert any("views from image/, mattes from mask/" in n and "cameras_sphere.npz" in n for n in s.notes)
+    # an empty-handed folder names both layouts
+    (root / "image").rename(root / "photos")
+    with pytest.raises(DataError, match=r"looked for images/ or image/ \(found mask/, photos/\)"):
+        load_scene("h3ds", root)

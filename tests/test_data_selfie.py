@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -40,7 +41,7 @@ def test_sfm_is_deterministic(shared_data, tmp_path):
     a, b = models
     assert a.names == b.names and len(a.names) >= 0.75 * 48
     np.testing.assert_array_equal(a.K, b.K)
-    np.testing.assert_array_equal(a.dist, b.dist)
+    np.testing.assert_array_equal(np.stack(a.params), np.stack(b.params))
     np.testing.assert_array_equal(a.c2w, b.c2w)
     np.testing.assert_array_equal(a.points, b.points)
 
@@ -96,3 +97,65 @@ def test_beer_video_sfm(shared_data, tmp_path, record_property):
     log.warning("Beer.mp4: aligned camera-centre error vs poses_bounds: rmse %.3f, median %.3f (x scene spread)",
                 rmse, med)
     assert np.isfinite(rmse) and rmse < 1.5
+
+
+def _short_clip(shared_data, dst):
+    """The first 5 s of Beer.mp4 at 10 fps, 180x320: a video SfM reconstructs in seconds."""
+    import av
+
+    with av.open(str(shared_data / "video_beer" / "Beer.mp4")) as src, av.open(str(dst), "w") as out:
+        stream = out.add_stream("libx264", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 180, 320, "yuv420p"
+        for i, frame in enumerate(src.decode(video=0)):
+            if frame.time > 5.0:
+                break
+            if i % 3 == 0:
+                img = frame.to_image().resize((180, 320))
+                for packet in stream.encode(av.VideoFrame.from_image(img)):
+                    out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    return dst
+
+
+@pytest.mark.slow
+def test_video_cache_goes_under_the_output_root(shared_data, tmp_path):
+    """Nothing is written beside the video unless asked (data.cache_dir=beside_data)."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from pipeline_helpers import tiny_cfg
+
+    from nerfart_plugin.pipeline import Pipeline
+
+    data = tmp_path / "data"
+    data.mkdir()
+    clip = _short_clip(shared_data, data / "clip.mp4")
+    before = sorted(p.name for p in data.rglob("*"))
+    out = tmp_path / "out"
+    pipe = Pipeline(tiny_cfg(out, clip, "data=selfie", "data.fps=10", "data.max_frames=30", "stage=reconstruct"))
+    pipe.load_data()
+    assert sorted(p.name for p in data.rglob("*")) == before == ["clip.mp4"]
+    caches = list((out / "cache" / "selfie").glob("clip_*"))
+    assert len(caches) == 1 and (caches[0] / "sparse" / "0" / "images.bin").is_file()
+    assert any(f"cached in {caches[0]}" in n for n in pipe.scene.notes)
+    # asked for: beside the data; same frames and SfM, so the same scene identity
+    beside = load_scene("selfie", clip, fps=10, max_frames=30, resolution=24, cache_dir="beside_data")
+    assert (data / "nerfart_cache").is_dir() and len(list((data / "nerfart_cache").glob("clip_*"))) == 1
+    assert beside.content_hash == pipe.scene.content_hash
+    # auto resolution: frames smaller than frame_long_side keep their native 180x320
+    native = load_scene("selfie", clip, fps=10, max_frames=30, cache_dir="beside_data")
+    assert any("loaded cached" in n for n in native.notes) and native.images.shape[1:3] == (320, 180)
+
+
+def test_cache_base_choices(tmp_path):
+    from nerfart_plugin.data.selfie import cache_base
+
+    video = tmp_path / "v.mp4"
+    video.write_bytes(b"x")
+    assert cache_base(video, None, tmp_path / "out" / "cache") == tmp_path / "out" / "cache" / "selfie"
+    assert cache_base(video, "auto", tmp_path / "c") == tmp_path / "c" / "selfie"
+    assert cache_base(video, None, None) == Path("outputs") / "cache" / "selfie"  # the default output_root
+    assert cache_base(video, "beside_data") == tmp_path / "nerfart_cache"
+    assert cache_base(tmp_path, "beside_data") == tmp_path / "nerfart_cache"  # a frame folder
+    assert cache_base(video, str(tmp_path / "mine")) == tmp_path / "mine"

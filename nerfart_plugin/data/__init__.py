@@ -1,7 +1,7 @@
 """Data: scene loaders (registry kind ``data``), rays, camera paths, the datamodule.
 
 ``load_scene(kind, path, **opts)`` dispatches to the loader registered as
-``kind`` ("h3ds", "llff", "selfie") and returns a validated :class:`Scene`.
+``kind`` ("h3ds", "llff", "selfie", "nerfstudio") and returns a validated :class:`Scene`.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import Any
 
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.data import h3ds, llff, selfie  # noqa: F401  (register loaders)
+from nerfart_plugin.data import h3ds, llff, nerfstudio, selfie  # noqa: F401  (register loaders)
 from nerfart_plugin.data.rays import ndc_rays, pixel_rays, rays_for_views
 
 

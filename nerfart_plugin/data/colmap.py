@@ -1,4 +1,9 @@
-"""Read a COLMAP sparse model (``cameras.bin/images.bin/points3D.bin`` or ``.txt``) with pycolmap."""
+"""Read a COLMAP sparse model (``cameras.bin/images.bin/points3D.bin`` or ``.txt``) with pycolmap.
+
+Every camera model pycolmap knows is kept as is (model name + parameter vector);
+projection and undistortion go through pycolmap's own implementation of the model
+(:meth:`ColmapModel.camera`, :func:`nerfart_plugin.data.undistort.colmap_maps`).
+"""
 
 from __future__ import annotations
 
@@ -13,15 +18,6 @@ from nerfart_plugin.errors import DataError
 
 log = logging.getLogger(__name__)
 
-# Distortion parameters (in pycolmap's params order after fx/fy/cx/cy) -> OpenCV's
-# (k1, k2, p1, p2, k3) vector. Models not listed are treated as undistorted pinholes.
-_DIST_MODELS = {
-    "SIMPLE_RADIAL": lambda p: [p[3], 0, 0, 0],
-    "RADIAL": lambda p: [p[3], p[4], 0, 0],
-    "OPENCV": lambda p: [p[4], p[5], p[6], p[7]],
-    "FULL_OPENCV": lambda p: [p[4], p[5], p[6], p[7], p[8]],
-}
-
 
 @dataclass
 class ColmapModel:
@@ -29,18 +25,21 @@ class ColmapModel:
 
     Attributes:
         names: image names (relative to the image folder COLMAP used).
-        K: [N,3,3] pinhole intrinsics (pixels of the images COLMAP saw).
-        dist: [N,k] OpenCV distortion coefficients (zeros for pinhole models).
+        K: [N,3,3] pinhole part of each camera (pixels of the images COLMAP saw,
+            pixel centres at +0.5).
+        params: per image, the camera's full COLMAP parameter vector (model order,
+            e.g. OPENCV: fx, fy, cx, cy, k1, k2, p1, p2).
         sizes: [N,2] (W, H) per image.
         c2w: [N,4,4] OpenCV camera-to-world in the model's frame.
         points: [P,3] sparse 3D points; colors [P,3] uint8; errors [P] (px).
         observations: per image, (xy [M,2] pixels, point index [M] into ``points``).
-        camera_models: COLMAP model name per image.
+        camera_models: COLMAP model name per image (any model pycolmap knows).
+        camera_ids: COLMAP camera id per image (images sharing a camera share it).
     """
 
     names: list[str]
     K: np.ndarray
-    dist: np.ndarray
+    params: list[np.ndarray]
     sizes: np.ndarray
     c2w: np.ndarray
     points: np.ndarray
@@ -48,17 +47,18 @@ class ColmapModel:
     errors: np.ndarray
     observations: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     camera_models: list[str] = field(default_factory=list)
+    camera_ids: list[int] = field(default_factory=list)
+
+    def camera(self, i: int) -> Any:
+        """The ``pycolmap.Camera`` of image ``i`` (projection through its lens model)."""
+        from nerfart_plugin.data.undistort import colmap_camera
+
+        w, h = (int(x) for x in self.sizes[i])
+        return colmap_camera(self.camera_models[i], w, h, self.params[i], source=self.names[i])
 
 
-def _params(cam: Any) -> tuple[np.ndarray, np.ndarray]:
-    name = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
-    p = np.asarray(cam.params, dtype=np.float64)
-    K = np.asarray(cam.calibration_matrix(), dtype=np.float64)
-    d = _DIST_MODELS.get(name)
-    dist = np.asarray(d(p) if d else [0, 0, 0, 0], dtype=np.float64)
-    if dist.size == 4:
-        dist = np.concatenate([dist, [0.0]])
-    return K, dist
+def _model_name(cam: Any) -> str:
+    return cam.model.name if hasattr(cam.model, "name") else str(cam.model)
 
 
 def read_colmap_model(path: Any) -> ColmapModel:
@@ -106,10 +106,13 @@ def model_from_reconstruction(rec: Any, source: str = "reconstruction") -> Colma
         errs = np.array([rec.points3D[p].error for p in pid_list], dtype=np.float64)
     else:
         pts, cols, errs = np.zeros((0, 3)), np.zeros((0, 3), np.uint8), np.zeros(0)
-    Ks, dists, sizes, c2ws, obs, models = [], [], [], [], [], []
+    Ks, params, sizes, c2ws, obs, models = [], [], [], [], [], []
     for im in images:
         cam = rec.cameras[im.camera_id]
-        K, dist = _params(cam)
+        if not cam.verify_params() or not np.isfinite(np.asarray(cam.params, dtype=np.float64)).all():
+            raise DataError(f"COLMAP model {source}: camera {im.camera_id} ({_model_name(cam)}) has invalid "
+                            f"parameters {list(cam.params)[:8]}; {fix}.")
+        K = np.asarray(cam.calibration_matrix(), dtype=np.float64) if list(cam.focal_length_idxs()) else np.eye(3)
         cfw = im.cam_from_world
         cfw = cfw() if callable(cfw) else cfw
         M = np.eye(4)
@@ -126,16 +129,16 @@ def model_from_reconstruction(rec: Any, source: str = "reconstruction") -> Colma
                     idx.append(j)
         obs.append((np.array(xy).reshape(-1, 2), np.array(idx, dtype=np.int64)))
         Ks.append(K)
-        dists.append(dist)
+        params.append(np.asarray(cam.params, dtype=np.float64))
         sizes.append((cam.width, cam.height))
         c2ws.append(c2w)
-        models.append(cam.model.name if hasattr(cam.model, "name") else str(cam.model))
+        models.append(_model_name(cam))
     if not np.isfinite(pts).all():
         raise DataError(f"COLMAP model {source} has non-finite 3D points; {fix}.")
     return ColmapModel(
         names=[im.name for im in images],
         K=np.stack(Ks),
-        dist=np.stack(dists),
+        params=params,
         sizes=np.array(sizes, dtype=np.int64),
         c2w=np.stack(c2ws),
         points=pts,
@@ -143,36 +146,33 @@ def model_from_reconstruction(rec: Any, source: str = "reconstruction") -> Colma
         errors=errs,
         observations=obs,
         camera_models=models,
+        camera_ids=[int(im.camera_id) for im in images],
     )
 
 
-def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, dist: np.ndarray | None = None) -> np.ndarray:
-    """Project world points [P,3] into a camera (OpenCV model incl. distortion) -> pixels [P,2].
+def project(points: np.ndarray, K: np.ndarray, c2w: np.ndarray, camera: Any = None) -> np.ndarray:
+    """Project world points [P,3] into a camera -> pixels [P,2] (pixel centres at +0.5, as COLMAP).
 
-    Pixel coordinates follow COLMAP/OpenCV: the centre of pixel (u, v) is at
-    (u + 0.5, v + 0.5) for COLMAP; both conventions agree since K comes from it.
+    Args:
+        points: [P,3] world points.
+        K: [3,3] pinhole intrinsics, used when ``camera`` is None.
+        c2w: [4,4] OpenCV camera-to-world.
+        camera: optional ``pycolmap.Camera``: project through its lens model
+            (``img_from_cam``, any COLMAP model) instead of the pinhole ``K``.
     """
     w2c = np.linalg.inv(c2w)
     X = points @ w2c[:3, :3].T + w2c[:3, 3]
-    x, y = X[:, 0] / X[:, 2], X[:, 1] / X[:, 2]
-    if dist is not None and np.any(dist):
-        k1, k2, p1, p2, k3 = (list(dist) + [0.0] * 5)[:5]
-        r2 = x * x + y * y
-        radial = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
-        x, y = (
-            x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
-        )
-    u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
-    v = K[1, 1] * y + K[1, 2]
-    return np.stack([u, v], -1)
+    if camera is not None:
+        return np.asarray(camera.img_from_cam(X.astype(np.float64)), dtype=np.float64).reshape(-1, 2)
+    uvw = X @ np.asarray(K, dtype=np.float64).T
+    return uvw[:, :2] / uvw[:, 2:3]
 
 
 def reprojection_errors(model: ColmapModel) -> np.ndarray:
-    """Pixel distances between every observation and its projected 3D point, [M_total]."""
+    """Pixel distances between every observation and its projected 3D point (through the lens model), [M_total]."""
     errs = []
     for i, (xy, idx) in enumerate(model.observations):
         if len(idx):
-            uv = project(model.points[idx], model.K[i], model.c2w[i], model.dist[i])
+            uv = project(model.points[idx], model.K[i], model.c2w[i], model.camera(i))
             errs.append(np.linalg.norm(uv - xy, axis=-1))
     return np.concatenate(errs) if errs else np.zeros(0)

@@ -61,10 +61,15 @@ def make_scene(
     hash_paths: Sequence[Path],
     opts: dict,
     holdout_every: int = 8,
+    split: Optional[tuple[Sequence[int], Sequence[int]]] = None,
 ) -> Scene:
-    """Build, hash and validate a :class:`Scene` from numpy arrays."""
+    """Build, hash and validate a :class:`Scene` from numpy arrays.
+
+    ``split`` = (train ids, val ids) given by the files (e.g. Blender's
+    ``transforms_{train,val}.json``); otherwise every ``holdout_every``-th view is held out.
+    """
     n = len(images)
-    train, val = split_ids(n, holdout_every)
+    train, val = split_ids(n, holdout_every) if split is None else ([int(i) for i in split[0]], [int(i) for i in split[1]])
     f32 = lambda a: torch.from_numpy(np.array(a, dtype=np.float32))  # noqa: E731
     near = np.broadcast_to(np.asarray(near, dtype=np.float64), (n,))
     far = np.broadcast_to(np.asarray(far, dtype=np.float64), (n,))

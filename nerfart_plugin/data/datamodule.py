@@ -139,9 +139,15 @@ class SceneDataModule(L.LightningDataModule):
     def load(self) -> Scene:
         """Load (once) and return the scene."""
         if self.scene is None:
+            import inspect
+
+            from nerfart_plugin import registry
             from nerfart_plugin.data import load_scene
 
-            self.scene = load_scene(self.kind, self.path, **self.loader_opts)
+            opts = dict(self.loader_opts)
+            if "background" in inspect.signature(registry.get("data", self.kind)).parameters:
+                opts["background"] = self.background  # loaders that composite RGBA images (nerfstudio)
+            self.scene = load_scene(self.kind, self.path, **opts)
         return self.scene
 
     def setup(self, stage: Optional[str] = None) -> None:

@@ -5,8 +5,12 @@ Layout::
     scene/
       cameras.npz | cameras_sphere.npz   world_mat_i (K[R|t] projection, 4x4 or 3x4),
                                          scale_mat_i (4x4 normalization), i = 0..N-1
-      images/     *.png|*.jpg            camera i <-> i-th image in sorted order
-      matte/ | mask/  (optional)         foreground mattes
+      images/ | image/  *.png|*.jpg      camera i <-> i-th image in sorted order
+      matte/ | mask/ | masks/ (optional) foreground mattes
+
+Both naming schemes load: the NeRF-Art/VolSDF one (``images/``, ``matte/``,
+``cameras.npz``) and the NeuS/IDR/DTU one (``image/``, ``mask/``,
+``cameras_sphere.npz``), in any mix.
 
 The camera of view ``i`` is recovered from ``P = world_mat_i @ scale_mat_i`` by an
 RQ decomposition (``cv2.decomposeProjectionMatrix``), as IDR's
@@ -25,7 +29,14 @@ from typing import Any, Optional
 import numpy as np
 
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.images import find_mask_folder, list_images, match_masks, read_image_set
+from nerfart_plugin.data.images import (
+    choose_resolution,
+    find_mask_folder,
+    image_size,
+    list_images,
+    match_masks,
+    read_image_set,
+)
 from nerfart_plugin.data.normalize import detect_capture
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import DataError
@@ -34,6 +45,20 @@ from nerfart_plugin.registry import register
 log = logging.getLogger(__name__)
 
 CAMERA_FILES = ("cameras.npz", "cameras_sphere.npz")
+#: image folder names, in order of preference (VolSDF/NeRF-Art, NeuS/IDR/DTU)
+IMAGE_FOLDERS = ("images", "image")
+
+
+def find_image_folder(root: Path) -> Path:
+    """``images/`` or ``image/`` under ``root``; DataError listing what was looked for."""
+    for name in IMAGE_FOLDERS:
+        if (root / name).is_dir():
+            return root / name
+    have = sorted(p.name + "/" for p in root.iterdir() if p.is_dir())
+    raise DataError(
+        f"No image folder in {root}: looked for {' or '.join(n + '/' for n in IMAGE_FOLDERS)} (found "
+        f"{', '.join(have) or 'no folders'}); put the views in images/ (or NeuS's image/)."
+    )
 
 
 def load_K_Rt_from_P(P: np.ndarray, source: str = "") -> tuple[np.ndarray, np.ndarray]:
@@ -111,7 +136,7 @@ def read_cameras_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @register("data", "h3ds")
 def load_h3ds(
     path: Any,
-    resolution: Optional[int] = None,
+    resolution: Any = "auto",
     holdout_every: int = 8,
     use_masks: bool = True,
     cameras_file: Optional[str] = None,
@@ -120,9 +145,11 @@ def load_h3ds(
     """Load an IDR/VolSDF/NeuS scene folder.
 
     Args:
-        path: scene folder (``images/``, ``cameras.npz`` or ``cameras_sphere.npz``,
-            optional ``matte/``/``mask/``).
-        resolution: long image side in pixels after resizing (None: native).
+        path: scene folder (``images/`` or ``image/``, ``cameras.npz`` or
+            ``cameras_sphere.npz``, optional ``matte/``/``mask/``).
+        resolution: ``"auto"`` (long side min(native, 480): the 256x256 head stays
+            native), None (native) or the long image side in pixels
+            (:func:`~nerfart_plugin.data.images.choose_resolution`).
         holdout_every: every n-th view goes to ``val_ids``.
         use_masks: load mattes when present (-> capture "object").
         cameras_file: which npz to use (default: ``cameras.npz``, else
@@ -147,15 +174,17 @@ def load_h3ds(
                 "for LLFF poses_bounds.npy use data=llff, for a video or COLMAP model use data=selfie."
             )
         cam_path = found[0]
-    image_paths = list_images(root / "images", notes)
+    image_dir = find_image_folder(root)
+    image_paths = list_images(image_dir, notes)
     Ks, c2w, scales = read_cameras_npz(cam_path)
     if len(Ks) != len(image_paths):
         raise DataError(
-            f"{cam_path} has {len(Ks)} cameras but {root / 'images'} has {len(image_paths)} images; camera i is "
+            f"{cam_path} has {len(Ks)} cameras but {image_dir} has {len(image_paths)} images; camera i is "
             "paired with the i-th image in sorted order, so the counts must agree: remove the images without "
             "cameras (or regenerate the cameras file for all images)."
         )
-    images, (w0, h0), (w1, h1) = read_image_set(image_paths, resolution)
+    long_side = choose_resolution(resolution, image_size(image_paths[0]), notes)
+    images, (w0, h0), (w1, h1) = read_image_set(image_paths, long_side)
     sx, sy = w1 / w0, h1 / h0
     if (w1, h1) != (w0, h0):
         Ks = Ks.copy()
@@ -167,7 +196,7 @@ def load_h3ds(
     mask_dir = find_mask_folder(root)
     if use_masks and mask_dir is not None:
         mask_paths = match_masks(image_paths, list_images(mask_dir, notes), notes)
-        masks, (mw, mh), _ = read_image_set(mask_paths, resolution, gray=True, what="matte")
+        masks, (mw, mh), _ = read_image_set(mask_paths, long_side, gray=True, what="matte")
         if (mw, mh) != (w0, h0):
             raise DataError(
                 f"Mattes in {mask_dir} are {mw}x{mh} but images are {w0}x{h0}: resize the mattes to the image size."
@@ -175,7 +204,8 @@ def load_h3ds(
     elif use_masks:
         notes.append("no matte/ or mask/ folder: loading without masks")
     capture, reason = detect_capture(c2w, masks)
-    notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}")
+    layout = f"views from {image_dir.name}/" + (f", mattes from {mask_dir.name}/" if mask_paths else "")
+    notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}; {layout}")
     dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
     near = np.maximum(dist - 1.0, 0.05)
     far = dist + 1.0
@@ -192,6 +222,6 @@ def load_h3ds(
         source=root,
         notes=notes,
         hash_paths=[cam_path, *image_paths, *mask_paths],
-        opts=dict(kind="h3ds", resolution=resolution, use_masks=use_masks, cameras=cam_path.name),
+        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name),
         holdout_every=holdout_every,
     )

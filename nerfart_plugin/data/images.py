@@ -8,16 +8,71 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 from PIL import Image
 
-from nerfart_plugin.errors import DataError
+from nerfart_plugin.errors import ConfigError, DataError
 
 log = logging.getLogger(__name__)
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+
+#: ``data.resolution=auto`` loads images with the long side min(native, AUTO_LONG_SIDE): the
+#: paper's selfies at 270x480, the 256x256 H3DS head and other small captures at their native size.
+AUTO_LONG_SIDE = 480
+
+
+def choose_resolution(
+    resolution: Any, native: tuple[int, int], notes: list[str], cap: Optional[int] = AUTO_LONG_SIDE
+) -> Optional[int]:
+    """The long side to load images at, from ``data.resolution``; logged and noted with the reason.
+
+    Args:
+        resolution: ``"auto"`` (long side ``min(native, cap)``; native when ``cap`` is
+            None, as for LLFF, whose ``factor`` picks the size), ``None``/``"native"``
+            (native size) or a positive integer (long side in pixels, overrides).
+        native: (W, H) of the images as stored.
+        notes: the scene notes to append the choice to.
+        cap: the long-side cap of ``auto`` (:data:`AUTO_LONG_SIDE`).
+
+    Returns:
+        the long side in pixels, or None for the native size.
+
+    Raises:
+        ConfigError: any other value.
+    """
+    w, h = int(native[0]), int(native[1])
+    long_native = max(w, h)
+    if isinstance(resolution, str) and resolution.strip().lower() in ("auto", "native", "null", "none"):
+        resolution = resolution.strip().lower()
+    elif resolution is not None:
+        ok = isinstance(resolution, (int, np.integer)) and not isinstance(resolution, bool) and resolution > 0
+        if not ok:
+            raise ConfigError(
+                f"data.resolution={resolution!r} is not valid: use auto (long side min(native, "
+                f"{AUTO_LONG_SIDE}) px), null (native size) or a positive integer (the long side in pixels)."
+            )
+        resolution = int(resolution)
+    if resolution in (None, "native", "null", "none"):
+        long_side, why = None, f"data.resolution=null: native {w}x{h}"
+    elif resolution == "auto":
+        if cap is None or long_native <= cap:
+            long_side = None
+            why = f"data.resolution=auto: native {w}x{h}" + (f" (long side <= {cap} px)" if cap else "")
+        else:
+            long_side = cap
+            why = (f"data.resolution=auto: long side {cap} px, {w}x{h} -> {'x'.join(map(str, target_size(w, h, cap)))} "
+                   f"(min(native, {cap}) as the paper's 270x480 selfies)")
+    else:
+        long_side = resolution
+        why = f"data.resolution={resolution}: {w}x{h} -> {'x'.join(map(str, target_size(w, h, resolution)))}"
+        if resolution > long_native:
+            why += " (upsampled: larger than the images)"
+    log.info("resolution: %s", why)
+    notes.append(f"resolution: {why}; data.resolution=<long side>|null|auto to change")
+    return long_side if long_side != long_native else None
 
 
 def list_images(folder: Path, notes: Optional[list[str]] = None) -> list[Path]:
@@ -149,3 +204,51 @@ def match_masks(images: Sequence[Path], mask_files: Sequence[Path], notes: list[
     )
     notes.append(msg)
     return chosen
+
+
+def read_rgba(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    """Read an image at its native size as float32 in [0,1]: (rgb [H,W,3], alpha [H,W] or None).
+
+    Images with an alpha channel (RGBA, LA, palette with transparency) return their
+    alpha; the RGB values are the stored (straight, not premultiplied) colours.
+
+    Raises:
+        DataError: unreadable, truncated or zero-length file.
+    """
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            has_alpha = im.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (
+                im.mode == "P" and "transparency" in im.info)
+            arr = np.asarray(im.convert("RGBA" if has_alpha else "RGB"), dtype=np.float32) / 255.0
+    except (OSError, ValueError, SyntaxError) as e:
+        raise DataError(
+            f"Cannot read image {path} ({e.__class__.__name__}: {e}): the file is corrupt or truncated; "
+            "re-export or delete it (and its frame) from the scene."
+        ) from e
+    return (arr[..., :3], arr[..., 3]) if has_alpha else (arr, None)
+
+
+def resize_float(arr: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize a float image [H,W] or [H,W,C] to ``size`` = (W, H) with Lanczos per channel, clipped to [0,1]."""
+    if (arr.shape[1], arr.shape[0]) == tuple(size):
+        return arr
+    chans = arr[..., None] if arr.ndim == 2 else arr
+    out = np.stack([np.asarray(Image.fromarray(np.ascontiguousarray(chans[..., c], dtype=np.float32))
+                               .resize(tuple(size), Image.Resampling.LANCZOS)) for c in range(chans.shape[-1])], -1)
+    out = np.clip(out, 0.0, 1.0)
+    return out[..., 0] if arr.ndim == 2 else out
+
+
+def resize_premultiplied(rgb: np.ndarray, alpha: np.ndarray, size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Resize straight-alpha ``rgb`` [H,W,3] and ``alpha`` [H,W] without dark fringes (premultiplied filtering).
+
+    Returns straight colours again (0 where the resized alpha is 0) and the resized alpha.
+    """
+    if (rgb.shape[1], rgb.shape[0]) == tuple(size):
+        return rgb, alpha
+    a = resize_float(alpha, size)
+    pre = resize_float(rgb * alpha[..., None], size)
+    straight = np.where(a[..., None] > 1e-4, pre / np.maximum(a[..., None], 1e-4), 0.0)
+    return np.clip(straight, 0.0, 1.0).astype(np.float32), a

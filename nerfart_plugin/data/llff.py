@@ -29,6 +29,7 @@ import numpy as np
 
 from nerfart_plugin.data.common import make_scene, require_dir
 from nerfart_plugin.data.images import (
+    choose_resolution,
     find_mask_folder,
     list_images,
     match_masks,
@@ -144,7 +145,7 @@ def _image_folder(root: Path, factor: Optional[int], notes: list[str]) -> tuple[
 def load_llff(
     path: Any,
     factor: Optional[int] = 8,
-    resolution: Optional[int] = None,
+    resolution: Any = "auto",
     holdout_every: int = 8,
     use_masks: bool = True,
     bd_factor: float = 0.75,
@@ -157,7 +158,8 @@ def load_llff(
         path: scene folder with ``poses_bounds.npy`` and ``images_<factor>/``.
         factor: which downscaled folder (``images_8`` by default); hwf is rescaled by
             (image size / hwf size).
-        resolution: optional further resize (long side, pixels).
+        resolution: ``"auto"`` or None: the native size of ``images_<factor>/``;
+            an integer: further resize (long side, pixels).
         holdout_every: every n-th view goes to ``val_ids``.
         use_masks: load ``matte/`` when present.
         bd_factor: LLFF's near-bound margin for forward-facing scenes.
@@ -179,8 +181,10 @@ def load_llff(
     w_img, h_img = image_size(image_paths[0])
     if extra_factor:
         w_img, h_img = int(round(w_img / extra_factor)), int(round(h_img / extra_factor))
-        resolution = resolution or max(w_img, h_img)
-    images, (w0, h0), (w1, h1) = read_image_set(image_paths, resolution)
+    long_side = choose_resolution(resolution, (w_img, h_img), notes, cap=None)
+    if extra_factor and long_side is None:
+        long_side = max(w_img, h_img)
+    images, (w0, h0), (w1, h1) = read_image_set(image_paths, long_side)
     H_f, W_f, f = pb.hwf[:, 0], pb.hwf[:, 1], pb.hwf[:, 2]
     sx, sy = w1 / W_f, h1 / H_f
     if abs(W_f[0] / H_f[0] - w0 / h0) > 0.02 * (w0 / h0):
@@ -237,7 +241,7 @@ def load_llff(
         source=root,
         notes=notes,
         hash_paths=[pb_path, *image_paths, *mask_paths],
-        opts=dict(kind="llff", factor=factor, resolution=resolution, use_masks=use_masks, bd_factor=bd_factor,
+        opts=dict(kind="llff", factor=factor, size=(w1, h1), use_masks=use_masks, bd_factor=bd_factor,
                   capture=capture),
         holdout_every=holdout_every,
     )

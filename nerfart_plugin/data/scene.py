@@ -35,7 +35,7 @@ class Scene:
         K: float32 [N,3,3] pinhole intrinsics in pixels for the returned resolution.
         near: float32 [N] near distance per camera (normalized units).
         far: float32 [N] far distance per camera (normalized units).
-        image_names: N file names (no folder).
+        image_names: N file names (no folder; data=nerfstudio: the path relative to the scene folder).
         train_ids: indices used for training.
         val_ids: held-out indices (every ``holdout_every``-th view by default).
         normalization: float32 [4,4] similarity, ``x_norm = T @ x_orig``.

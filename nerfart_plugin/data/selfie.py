@@ -3,14 +3,18 @@
 Pipeline, as in NeRF-Art's selfie captures:
 
 1. frames: a video is sampled at ``fps`` (15) frames per second, evenly
-   subsampled to at most ``max_frames`` (100) and resized so the long side is
-   ``frame_long_side`` (480 -> 270x480 portrait / 480x270 landscape). A folder of
-   frames (``folder/`` or ``folder/images/``) is subsampled/resized the same way.
+   subsampled to at most ``max_frames`` (100) and shrunk so the long side is at
+   most ``frame_long_side`` (480 -> 270x480 portrait / 480x270 landscape; smaller
+   videos keep their size). A folder of frames (``folder/`` or ``folder/images/``)
+   is subsampled/resized the same way.
 2. SfM with pycolmap: SIFT extraction with ONE camera shared by all frames,
    sequential matching (``matcher="exhaustive"`` for unordered frames),
-   incremental mapping. Frames and model are cached in
-   ``<cache_dir or next to the input>/nerfart_cache/<name>_<hash>/`` keyed by a
-   SHA-256 of the input and the settings; a rerun with the same input loads it.
+   incremental mapping. Frames and model are cached in ``<base>/<name>_<hash>/``
+   keyed by a SHA-256 of the input and the settings; a rerun with the same input
+   loads it. Nothing is written next to the data unless asked (:func:`cache_base`):
+   ``<base>`` is ``<output_root>/cache/selfie`` by default (the pipeline passes
+   ``cache_root=<output_root>/cache``), ``nerfart_cache/`` beside the input with
+   ``cache_dir="beside_data"``, or an explicit ``cache_dir``.
 3. An existing COLMAP model (``folder/sparse/0`` with ``folder/images/``) is
    used as is, without re-running SfM.
 
@@ -31,11 +35,19 @@ import numpy as np
 
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
-from nerfart_plugin.data.images import find_mask_folder, list_images, match_masks, read_image, target_size
+from nerfart_plugin.data.images import (
+    choose_resolution,
+    find_mask_folder,
+    list_images,
+    match_masks,
+    read_image,
+    target_size,
+)
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.errors import DataError
+from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
+from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.registry import register
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
 
@@ -54,6 +66,18 @@ def _save_png(arr_u8: np.ndarray, path: Path) -> None:
 
     with atomic_path(path) as tmp:
         Image.fromarray(arr_u8).save(tmp, format="PNG")
+
+
+def _frame_size(w: int, h: int, long_side: Optional[int]) -> tuple[int, int]:
+    """(W, H) with the long side at most ``long_side`` (frames are never upsampled)."""
+    return target_size(w, h, long_side) if long_side and max(w, h) > long_side else (w, h)
+
+
+def _shrink(img: Any, long_side: Optional[int]) -> Any:
+    from PIL import Image
+
+    size = _frame_size(img.width, img.height, long_side)
+    return img if size == img.size else img.resize(size, Image.Resampling.LANCZOS)
 
 
 def extract_frames(
@@ -103,16 +127,12 @@ def extract_frames(
                 elif t + 1e-6 < next_t:
                     continue
                 img = frame.to_image()
-                if long_side:
-                    img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
+                img = _shrink(img, long_side)
                 kept.append((t, img))
                 last = None
                 next_t = t + 1.0 / fps - 0.5 / 1000.0
             if targets and last is not None:  # header duration beyond the last frame (VFR phone videos)
-                img = last[1].to_image()
-                if long_side:
-                    img = img.resize(target_size(img.width, img.height, long_side), Image.Resampling.LANCZOS)
-                kept.append((last[0], img))
+                kept.append((last[0], _shrink(last[1].to_image(), long_side)))
     except DataError:
         raise
     except Exception as e:  # av.error.* and friends
@@ -142,7 +162,7 @@ def _copy_frames(paths: list[Path], out_dir: Path, max_frames: int, long_side: O
         from PIL import Image
 
         with Image.open(p) as im:
-            size = target_size(im.width, im.height, long_side)
+            size = _frame_size(im.width, im.height, long_side)
         arr = read_image(p, size)
         name = p.stem + ".png"
         _save_png((arr * 255 + 0.5).astype(np.uint8), out_dir / name)
@@ -230,13 +250,35 @@ def run_sfm(
         shutil.rmtree(work, ignore_errors=True)
 
 
-# --------------------------------------------------------------------------- loader
-def _undistort(arr: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    import cv2
+def check_sfm_camera_model(name: str) -> str:
+    """``name`` if COLMAP can fit it to the frames and the result can be undistorted, else ConfigError."""
+    import pycolmap
 
-    if not np.any(dist):
-        return arr
-    return cv2.undistort(arr, K, dist, None, K)
+    usable = [m for m in pycolmap.CameraModelId.__members__ if m not in ("INVALID", "EQUIRECTANGULAR")]
+    if name not in usable:
+        raise ConfigError(f"data.camera_model={name!r} is not a COLMAP camera model this loader can use; pick one of "
+                          f"{', '.join(usable)} (SIMPLE_RADIAL for phone videos, OPENCV_FISHEYE for action cameras).")
+    return name
+
+
+# --------------------------------------------------------------------------- loader
+def _undistortion(model: ColmapModel, source: Path, notes: list[str]) -> list[UndistortMaps]:
+    """Undistortion tables per image (one per COLMAP camera), built with pycolmap for any model.
+
+    Raises:
+        DataError: a camera model without a pinhole view (spherical), naming it.
+    """
+    by_camera: dict[int, UndistortMaps] = {}
+    for i, cid in enumerate(model.camera_ids):
+        if cid not in by_camera:
+            by_camera[cid] = colmap_maps(model.camera(i), f"{source} (camera {cid})")
+    maps = [by_camera[c] for c in model.camera_ids]
+    moved = sorted({model.camera_models[i] for i, m in enumerate(maps) if not m.identity})
+    if moved:
+        valid = min(m.valid_fraction for m in maps)
+        notes.append(f"removed {'/'.join(moved)} lens distortion from the images with pycolmap's camera model "
+                     f"(pinhole K kept; {valid:.1%} of each view maps inside the source image, the rest is 0)")
+    return maps
 
 
 def _prepare(
@@ -250,10 +292,11 @@ def _prepare(
     notes: list[str],
     sfm_seed: int = 0,
     sfm_threads: int = 1,
+    cache_root: Optional[Any] = None,
 ) -> tuple[Path, Path, list[Path], Optional[Path]]:
     """Return (image folder, model folder, files defining the scene, mask folder)."""
     settings = dict(fps=fps, max_frames=max_frames, long=frame_long_side, matcher=matcher, cam=camera_model,
-                    seed=sfm_seed, threads=sfm_threads, v=2)
+                    seed=sfm_seed, threads=sfm_threads, v=3)
     if root.is_file():
         if root.suffix.lower() not in VIDEO_EXTS:
             raise DataError(f"{root} is not a video ({'/'.join(VIDEO_EXTS)}) nor a folder of frames: fix data.path.")
@@ -270,8 +313,7 @@ def _prepare(
     if not root.is_file() and len(frame_paths) < 3:
         raise DataError(f"Only {len(frame_paths)} frame(s) in {frame_dir}: SfM needs many overlapping views (>= 20).")
     key = hash_files(inputs, extra=options_key(**settings))[:16]
-    base = Path(cache_dir) if cache_dir is not None else (root.parent if root.is_file() else root) / "nerfart_cache"
-    cache = base / f"{root.stem}_{key}"
+    cache = cache_base(root, cache_dir, cache_root) / f"{root.stem}_{key}"
     image_dir, model_dir, meta_path = cache / "images", cache / "sparse" / "0", cache / "frames.json"
     if meta_path.is_file() and (model_dir / "images.bin").is_file():
         notes.append(f"loaded cached frames and SfM from {cache}")
@@ -289,6 +331,25 @@ def _prepare(
     return image_dir, model_dir, files, mask_dir
 
 
+def cache_base(root: Path, cache_dir: Optional[Any] = None, cache_root: Optional[Any] = None) -> Path:
+    """The folder that holds the ``<name>_<hash>/`` frame + SfM caches of input ``root``.
+
+    Args:
+        root: the video file or frame folder.
+        cache_dir: None or ``"auto"``: ``<cache_root>/selfie``; ``"beside_data"``:
+            ``nerfart_cache/`` next to the video (inside a frame folder), the only
+            choice that writes into the data folder; anything else: that folder.
+        cache_root: the project's cache folder; the pipeline passes
+            ``<output_root>/cache``; None: ``outputs/cache`` (the default
+            ``output_root``, relative to the working directory).
+    """
+    if cache_dir is None or str(cache_dir) in ("auto", ""):
+        return Path(cache_root if cache_root is not None else Path("outputs") / "cache").expanduser() / "selfie"
+    if str(cache_dir) == "beside_data":
+        return (root.parent if root.is_file() else root) / "nerfart_cache"
+    return Path(cache_dir).expanduser()
+
+
 def selfie_cache_meta(scene: Scene) -> Optional[dict]:
     """The cache's ``frames.json`` (frame names and video times) for a selfie scene, if any."""
     for note in scene.notes:
@@ -303,7 +364,7 @@ def selfie_cache_meta(scene: Scene) -> Optional[dict]:
 @register("data", "selfie")
 def load_selfie(
     path: Any,
-    resolution: Optional[int] = None,
+    resolution: Any = "auto",
     holdout_every: int = 8,
     use_masks: bool = True,
     fps: float = 15.0,
@@ -313,6 +374,7 @@ def load_selfie(
     camera_model: str = "SIMPLE_RADIAL",
     min_registered: float = 0.5,
     cache_dir: Optional[Any] = None,
+    cache_root: Optional[Any] = None,
     capture: Optional[str] = None,
     sfm_seed: int = 0,
     sfm_threads: int = 1,
@@ -323,14 +385,18 @@ def load_selfie(
     Args:
         path: video file, folder of frames (``folder/`` or ``folder/images/``), or a
             folder with ``images/`` and ``sparse/0``.
-        resolution: long side of the returned images (None: the SfM frame size).
+        resolution: long side of the returned images: ``"auto"`` (min(native, 480):
+            the paper's 270x480 for 540x960 frames, video frames stay at
+            ``frame_long_side``), None (the frames' size) or pixels.
         fps, max_frames, frame_long_side: frame sampling (paper: 15 fps, <= 100, 480).
         matcher: "sequential" (video order) or "exhaustive".
         camera_model: COLMAP camera model of the single shared camera; distortion is
             removed from the returned images (K stays the pinhole part).
         min_registered: minimal fraction of frames SfM must register.
-        cache_dir: where ``<name>_<hash>/`` caches go (default: ``nerfart_cache/``
-            next to the input).
+        cache_dir: where ``<name>_<hash>/`` caches go: None (``<cache_root>/selfie``),
+            ``"beside_data"`` (``nerfart_cache/`` next to the input) or a folder
+            (:func:`cache_base`).
+        cache_root: the project's cache folder (the pipeline: ``<output_root>/cache``).
         capture: force the capture type instead of detecting it.
         sfm_seed: seed of every random choice in COLMAP (RANSAC, mapper).
         sfm_threads: threads of each SfM step; 1 (default) makes the cameras a
@@ -341,13 +407,14 @@ def load_selfie(
         log.debug("selfie loader ignores options %s", sorted(unused))
     if path is None:
         raise DataError("No input given for data=selfie: set data.path=/path/to/video.mp4 (or a folder of frames).")
+    check_sfm_camera_model(camera_model)
     root = Path(path).expanduser()
     if not root.is_file():
         root = require_dir(root, "selfie folder")
     notes: list[str] = []
     image_dir, model_dir, files, mask_dir = _prepare(
         root, fps, max_frames, frame_long_side, matcher, camera_model, cache_dir, notes,
-        sfm_seed=int(sfm_seed), sfm_threads=int(sfm_threads),
+        sfm_seed=int(sfm_seed), sfm_threads=int(sfm_threads), cache_root=cache_root,
     )
     model: ColmapModel = read_colmap_model(model_dir)
     frames = list_images(image_dir)
@@ -370,23 +437,20 @@ def load_selfie(
     W0, H0 = int(model.sizes[0][0]), int(model.sizes[0][1])
     if any(tuple(s) != (W0, H0) for s in model.sizes):
         raise DataError(f"COLMAP model {model_dir} has cameras of different sizes; use one image size for all frames.")
-    W1, H1 = target_size(W0, H0, resolution)
+    W1, H1 = target_size(W0, H0, choose_resolution(resolution, (W0, H0), notes))
     sx, sy = W1 / W0, H1 / H0
+    maps = _undistortion(model, model_dir, notes)
     imgs = []
     for i, p in enumerate(paths):
         arr = read_image(p)
         if arr.shape[:2] != (H0, W0):
             raise DataError(f"{p} is {arr.shape[1]}x{arr.shape[0]} but its COLMAP camera is {W0}x{H0}: images and model do not match.")
-        arr = _undistort(arr, model.K[i], model.dist[i])
-        imgs.append(arr)
-    if np.any(model.dist):
-        notes.append(f"removed {model.camera_models[0]} lens distortion from the images (pinhole K kept)")
+        imgs.append(remap(arr, maps[i]))
     images = np.stack(imgs)
     masks, mask_paths = None, []
     if use_masks and mask_dir is not None:
         mask_paths = match_masks(paths, list_images(mask_dir, notes), notes)
-        masks = np.stack([_undistort(read_image(p, (W0, H0), gray=True), model.K[i], model.dist[i])
-                          for i, p in enumerate(mask_paths)])
+        masks = np.stack([remap(read_image(p, (W0, H0), gray=True), maps[i]) for i, p in enumerate(mask_paths)])
     if (W1, H1) != (W0, H0):
         import torch
         import torch.nn.functional as F
@@ -396,7 +460,7 @@ def load_selfie(
         if masks is not None:
             masks = F.interpolate(torch.from_numpy(masks)[:, None], size=(H1, W1), mode="bilinear",
                                   antialias=True)[:, 0].clamp(0, 1).numpy()
-    K = model.K.copy()
+    K = np.stack([m.K for m in maps])
     K[:, 0, :] *= sx
     K[:, 1, :] *= sy
     if capture is None:
@@ -440,6 +504,6 @@ def load_selfie(
         source=root,
         notes=notes,
         hash_paths=[*files, *paths, *mask_paths],
-        opts=dict(kind="selfie", resolution=resolution, use_masks=use_masks, capture=capture),
+        opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture),
         holdout_every=holdout_every,
     )
