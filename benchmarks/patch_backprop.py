@@ -105,7 +105,7 @@ def run_method(r, view: dict, mode: str, chunk: int, patch_rays: int, loss_fn, s
         img = first["rgb"].clone().requires_grad_(True)
         grad = torch.autograd.grad(loss_fn(img), img)[0]
         backprop_patches(r, view, first["t_samples"], grad, patch_rays,
-                         {"reg": (LAMBDA_REG, lambda o: weight_regularization(o["weights"], o["t"]))})
+                         {"reg": (LAMBDA_REG, lambda o, _: weight_regularization(o["weights"], o["t"]))})
 
 
 def measure(payload: dict[str, Any]) -> dict[str, Any]:

@@ -171,3 +171,11 @@ def off_surface_share(renderer: Any, batch: dict[str, Any], delta: float = 0.05,
         off += float(o.sum())
         total += float(t.sum())
     return off / total if total > 0 else 0.0
+
+
+def silhouette_iou(opacity_a: torch.Tensor, opacity_b: torch.Tensor, threshold: float = 0.5) -> float:
+    """IoU of the silhouettes (opacity > ``threshold``) of two renders [B,H,W] of the same views
+    (1 = the stylization kept the outline; 1 also when both are empty)."""
+    a, b = opacity_a > threshold, opacity_b > threshold
+    union = int((a | b).sum())
+    return float((a & b).sum()) / union if union else 1.0

@@ -222,6 +222,17 @@ def reconstruction_loss(rgb: Tensor, target: Tensor, mask: Tensor | None = None)
     return (se * m).sum() / denom.clamp_min(1e-8)
 
 
+def silhouette_loss(opacity: Tensor, target: Tensor) -> Tensor:
+    """Binary cross-entropy of ray opacities [R] against a target silhouette [R] in [0,1]: the mask
+    term of the reconstruction (against the photos' mattes), and while stylizing against the source
+    render's opacity (keeps a colour-only style from growing the object over the background).
+    Opacities are clamped to [1e-4, 1 - 1e-4]. Returns a 0-dim mean."""
+    if opacity.shape != target.shape or opacity.dim() != 1:
+        raise ValueError(f"silhouette_loss expects opacity and target [R], got {tuple(opacity.shape)} "
+                         f"and {tuple(target.shape)}")
+    return F.binary_cross_entropy(opacity.float().clamp(1e-4, 1.0 - 1e-4), target.float().clamp(0.0, 1.0))
+
+
 def psnr(rgb: Tensor, target: Tensor, mask: Tensor | None = None, max_val: float = 1.0) -> Tensor:
     """Peak signal-to-noise ratio in dB: ``10 log10(max_val² / MSE)``.
 

@@ -258,7 +258,7 @@ class Pipeline:
         from nerfart_plugin.systems.callbacks import AtomicCheckpoint
         from nerfart_plugin.systems.stylization import StylizationSystem, style_views
 
-        sc, exp = self.c["stylize"], self.c["experiment"]
+        sc, exp = self.stylize_settings(), self.c["experiment"]
         src_prompt = self.c.get("source_prompt", "auto")
         if src_prompt in (None, "auto"):
             src_prompt = default_source_prompt(self.c["data"].get("subject") or "object")
@@ -310,26 +310,41 @@ class Pipeline:
                                                                if k.startswith(("clip_", "view_", "mesh_"))}}
         return final
 
+    def stylize_settings(self) -> dict[str, Any]:
+        """The ``stylize`` config with ``resolution: auto`` (the loaded images' long side, i.e. the
+        data resolution policy: 256x256 head, 270x480 selfies) and ``epochs`` (steps = epochs x
+        training views, the paper's "4 epochs") resolved."""
+        sc = dict(self.c["stylize"])
+        if sc.get("resolution") in (None, "auto"):
+            sc["resolution"] = max(self.scene.height, self.scene.width)
+        if sc.get("epochs"):
+            sc["steps"] = int(sc["epochs"]) * len(self.scene.train_ids)
+        return sc
+
     @torch.no_grad()
     def stylization_outputs(self, system, run_dir: Path) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
         from nerfart_plugin.data.camera_path import orbit_path
-        from nerfart_plugin.evaluation import clip_scores, off_surface_share, view_consistency
+        from nerfart_plugin.evaluation import clip_scores, off_surface_share, silhouette_iou, view_consistency
         from nerfart_plugin.systems.base import to_device
         from nerfart_plugin.export.video import side_by_side, write_video
         from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8, style_views
 
         system.to(self.device).eval()
-        sc = self.c["stylize"]
+        sc = self.stylize_settings()
         ids = self.scene.val_ids or self.scene.train_ids[:4]
         eval_views = style_views(self.scene, ids, int(sc["resolution"]), self.dm.ndc)
-        sty = torch.stack([system.render_batch(v)["rgb"].permute(2, 0, 1) for v in eval_views])
-        src = torch.stack([system.render_batch(v, source=True)["rgb"].permute(2, 0, 1) for v in eval_views])
+        sty_out = [system.render_batch(v) for v in eval_views]
+        src_out = [system.render_batch(v, source=True) for v in eval_views]
+        sty = torch.stack([o["rgb"].permute(2, 0, 1) for o in sty_out])
+        src = torch.stack([o["rgb"].permute(2, 0, 1) for o in src_out])
         metrics: dict[str, Any] = clip_scores(system.guidance, sty.clamp(0, 1), src.clamp(0, 1), system.tgt_txt,
                                               system.src_txt)
         metrics["mean_rgb"] = [float(x) for x in sty.clamp(0, 1).mean((0, 2, 3))]
         metrics["mean_rgb_source"] = [float(x) for x in src.clamp(0, 1).mean((0, 2, 3))]
         metrics["edge_similarity"] = edge_similarity(sty.clamp(0, 1), src.clamp(0, 1))
+        metrics["silhouette_iou"] = silhouette_iou(torch.stack([o["opacity"][..., 0] for o in src_out]),
+                                                   torch.stack([o["opacity"][..., 0] for o in sty_out]))
         self.save_heldout(run_dir, ids, src, sty)
         metrics["judge"] = self.judge(src.clamp(0, 1), sty.clamp(0, 1), ids)
         metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.renderer, to_device(v, self.device))

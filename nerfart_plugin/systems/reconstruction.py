@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nerfart_plugin.losses import psnr, reconstruction_loss
+from nerfart_plugin.losses import psnr, reconstruction_loss, silhouette_loss
 from nerfart_plugin.systems.base import RenderSystem, build_renderer, param_groups, step_seed, to_device
 from nerfart_plugin.systems.callbacks import check_finite_losses
 from nerfart_plugin.systems.scene_setup import SceneSetup
@@ -80,8 +80,7 @@ class ReconstructionSystem(RenderSystem):
         if lambdas["eikonal"] > 0 and "eikonal" in out:
             terms["eikonal"] = out["eikonal"]
         if lambdas["mask"] > 0:
-            opacity = out["opacity"].clamp(1e-4, 1.0 - 1e-4)
-            terms["mask"] = F.binary_cross_entropy(opacity, batch["mask"].float().clamp(0.0, 1.0))
+            terms["mask"] = silhouette_loss(out["opacity"], batch["mask"])
         check_finite_losses(terms, step, "reconstruct")
         loss = sum(lambdas[k] * v for k, v in terms.items())
 

@@ -42,6 +42,7 @@ from nerfart_plugin.losses import (
     contrastive_loss,
     directional_clip_loss,
     perceptual_loss,
+    silhouette_loss,
     weight_regularization,
 )
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
@@ -137,6 +138,7 @@ class StylizationSystem(RenderSystem):
             "reg": float(self.exp.get("lambda_reg", 0.1)),
             "eikonal": (float(self.exp.get("lambda_eikonal", 0.1))
                         if self.field.is_sdf and not self.freeze_geometry else 0.0),
+            "silhouette": 0.0 if self.freeze_geometry else float(self.exp.get("lambda_silhouette", 0.0)),
         }
         occ = self.renderer.occupancy
         self.occupancy_every = 0 if self.freeze_geometry or occ is None else int(self.cfg.get("occupancy_update_every", 8))
@@ -183,7 +185,7 @@ class StylizationSystem(RenderSystem):
             out = self.source.render_chunked(to_device(v, self.device), chunk=int(self.cfg.get("chunk", 4096)),
                                              with_normals=False)
             img = out["rgb"].reshape(v["H"], v["W"], 3).permute(2, 0, 1)[None].clamp(0, 1)
-            entry = {"img": img, "emb": self.guidance.encode_image(img),
+            entry = {"img": img, "emb": self.guidance.encode_image(img), "opacity": out["opacity"],
                      "box": subject_box(out["opacity"].reshape(v["H"], v["W"]))}
             if self.lambdas["perceptual"] > 0:
                 entry["feats"] = [f.detach() for f in self.perceptual.features(img)]
@@ -253,9 +255,13 @@ class StylizationSystem(RenderSystem):
         # pass 2: re-render patches with grad at the same samples, back-propagate dL/dI (+ Eq. 7)
         opt.zero_grad(set_to_none=True)
         ray_losses = {
-            "reg": (self.lambdas["reg"], lambda out: weight_regularization(out["weights"], out["t"])),
-            "eikonal": (self.lambdas["eikonal"], lambda out: out["eikonal"]),
+            "reg": (self.lambdas["reg"], lambda out, rays: weight_regularization(out["weights"], out["t"])),
+            "eikonal": (self.lambdas["eikonal"], lambda out, rays: out["eikonal"]),
+            "silhouette": (self.lambdas["silhouette"],
+                           lambda out, rays: silhouette_loss(out["opacity"], rays["source_opacity"])),
         }
+        if self.lambdas["silhouette"] > 0:
+            view = {**view, "source_opacity": src["opacity"]}
         patch = int(self.cfg.get("patch_size", 64))
         ray_terms = backprop_patches(self.renderer, view, first["t_samples"], rgb_grad, patch * patch,
                                      ray_losses, backward=self.manual_backward)
