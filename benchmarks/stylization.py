@@ -166,7 +166,7 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
 
     from nerfart_plugin.evaluation import clip_scores
     from nerfart_plugin.guidance import (augment_prompt, build_guidance, build_perceptual, default_source_prompt,
-                                         load_negatives)
+                                         resolve_negatives)
     from nerfart_plugin.systems.base import steps_loader
     from nerfart_plugin.systems.stylization import StylizationSystem, style_views
 
@@ -179,10 +179,11 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
     scene, sc = ctx.pipe.scene, c["stylize"]
     views = style_views(scene, scene.train_ids, int(sc["resolution"]), ctx.pipe.dm.ndc)
     prompt = augment_prompt(PROMPT)
-    src_prompt = default_source_prompt(scene.capture, has_person=scene.masks is not None)
+    src_prompt = default_source_prompt(c["data"].get("subject") or "object")
     system = StylizationSystem(sc, c["experiment"], c["backbone"], c["encoding"], c["render"], ctx.pipe.setup,
-                               ctx.source_state, views, guidance, perceptual, prompt, src_prompt, load_negatives(),
-                               seed=int(c["seed"]))
+                               ctx.source_state, views, guidance, perceptual, prompt, src_prompt,
+                               resolve_negatives(sc.get("negatives"), guidance, prompt), seed=int(c["seed"]),
+                               raw_prompt=PROMPT)
 
     class Recorder(L.Callback):
         def __init__(self) -> None:
