@@ -31,7 +31,6 @@ import lightning as L
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from nerfart_plugin import registry
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json, atomic_write_text
@@ -56,13 +55,16 @@ def _container(cfg: DictConfig | dict) -> dict:
     return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
 
 
-def validate_config(c: dict) -> None:
-    """Cheap checks before anything is loaded: stage, component names, prompt."""
-    if c.get("stage") not in STAGES:
-        raise ConfigError(f"stage={c.get('stage')!r} is not valid; use one of {', '.join(STAGES)}.")
-    registry.get("backbone", c["backbone"]["name"])
-    registry.get("encoding", c["encoding"]["name"])
-    registry.get("data", c["data"]["kind"])
+def validate_config(c: dict) -> dict:
+    """Every setting checked before anything is loaded (:mod:`nerfart_plugin.schema`: types, ranges,
+    choices, unknown keys), then what depends on the stage: multi-device only for the reconstruction,
+    a prompt for stylization, an existing ``source_checkpoint``, an available ``device``.
+
+    Returns the config with the values validation converted (``"512"`` -> 512).
+    """
+    from nerfart_plugin import schema
+
+    c = schema.validate_config(c)
     tc = c.get("trainer", {})
     distributed = tc.get("strategy", "auto") not in ("auto", None) or int(tc.get("num_nodes", 1)) != 1 \
         or tc.get("devices", 1) not in (1, "1")
@@ -72,13 +74,39 @@ def validate_config(c: dict) -> None:
                           "backward passes (Section 4.4) on one device. Run stage=reconstruct with DDP, then "
                           "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1.")
     if c["stage"] in ("stylize", "all"):
-        registry.get("guidance", c["guidance"]["name"])
         from nerfart_plugin.guidance import validate_prompt
 
         if c.get("prompt") is None:
             raise ConfigError("stage=%s needs a style prompt: add +prompt=\"Vincent van Gogh\" (or stage=reconstruct)."
                               % c["stage"])
         validate_prompt(c["prompt"])
+    src = c.get("source_checkpoint")
+    if src and not Path(src).expanduser().is_file():
+        raise ConfigError(f"source_checkpoint={src}: no such file. Point it at the final.ckpt of a reconstruction "
+                          "(outputs/reconstructions/<run>/final.ckpt) or leave it out to use the cached one.")
+    check_device(str(c.get("device", "auto")), c.get("trainer", {}).get("devices", 1))
+    return c
+
+
+def check_device(device: str, devices: Any = 1) -> None:
+    """ConfigError if ``device`` names an accelerator this machine does not have, or ``trainer.devices``
+    is a GPU-only form (-1, a list of ids) for a CPU / MPS run."""
+    if device.startswith("cuda"):
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        index = int(device.split(":", 1)[1]) if ":" in device else 0
+        if index >= n:
+            raise ConfigError(f"device={device}: this machine has {n} CUDA device(s) (torch.cuda.device_count()); "
+                              "use device=auto (the best available) or device=cpu.")
+    if device == "mps":
+        mps = getattr(torch.backends, "mps", None)
+        if mps is None or not mps.is_available():
+            raise ConfigError("device=mps: Apple's Metal backend is not available here; use device=auto or device=cpu.")
+    kind = pick_device(device).type
+    if kind != "cuda" and not (devices == "auto" or (isinstance(devices, int) and devices >= 1)):
+        from nerfart_plugin.schema import show
+
+        raise ConfigError(f"trainer.devices={show(devices)}: on {kind} give a number of processes N >= 1 (or auto); "
+                          "-1 and lists of device ids select GPUs (device=cuda).")
 
 
 def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: list, tc: dict, **kw: Any) -> L.Trainer:
@@ -122,8 +150,7 @@ class Pipeline:
     """One configured job: loads the scene once and runs the requested stages."""
 
     def __init__(self, cfg: DictConfig | dict) -> None:
-        self.c = _container(cfg)
-        validate_config(self.c)
+        self.c = validate_config(_container(cfg))
         self.device = pick_device(self.c.get("device", "auto"))
         self.root = Path(self.c.get("output_root", "outputs"))
         self.resume = bool(self.c.get("resume", True))
@@ -191,15 +218,18 @@ class Pipeline:
         system = ReconstructionSystem(rc, *self._components(), self.setup, train_rays=self.dm.train_rays,
                                       seed=self.c["seed"], out_dir=str(run_dir))
         ckpt = AtomicCheckpoint(run_dir, rc.get("checkpoint_every", 100))
+        val_every = int(rc.get("val_every", 500))
+        val_kw: dict[str, Any] = (dict(val_check_interval=val_every, check_val_every_n_epoch=None,
+                                       limit_val_batches=int(rc.get("val_views", 2)) or 1.0)
+                                  if val_every > 0 else dict(limit_val_batches=0))  # val_every=0: no validation
         trainer = _trainer(run_dir, int(rc["steps"]), self.device, [ckpt, FiniteGradientGuard()], self.c["trainer"],
-                           val_check_interval=int(rc.get("val_every", 500)), check_val_every_n_epoch=None,
-                           limit_val_batches=int(rc.get("val_views", 2)) or 1.0)
+                           **val_kw)
         last = run_dir / "last.ckpt"
         ckpt_path = str(last) if last.exists() else None
         if ckpt_path:
             log.info("resuming the reconstruction from %s", last)
         t0 = time.perf_counter()
-        self._fit(trainer, system, val=self.dm.val_dataloader(), ckpt_path=ckpt_path)
+        self._fit(trainer, system, val=self.dm.val_dataloader() if val_every > 0 else None, ckpt_path=ckpt_path)
         seconds = time.perf_counter() - t0
         if trainer.global_rank != 0:  # DDP: evaluation and outputs on rank 0 only
             return final
@@ -304,10 +334,8 @@ class Pipeline:
     @torch.no_grad()
     def stylization_outputs(self, system, run_dir: Path) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
-        from nerfart_plugin.data.camera_path import orbit_path
-        from nerfart_plugin.evaluation import clip_scores, view_consistency
-        from nerfart_plugin.export.video import side_by_side, write_video
-        from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8, style_views
+        from nerfart_plugin.evaluation import clip_scores
+        from nerfart_plugin.systems.stylization import style_views
 
         system.to(self.device).eval()
         sc = self.c["stylize"]
@@ -320,10 +348,26 @@ class Pipeline:
         metrics["mean_rgb"] = [float(x) for x in sty.clamp(0, 1).mean((0, 2, 3))]
         metrics["mean_rgb_source"] = [float(x) for x in src.clamp(0, 1).mean((0, 2, 3))]
         metrics["edge_similarity"] = edge_similarity(sty.clamp(0, 1), src.clamp(0, 1))
-        # camera-path video, source | stylized, and view consistency along it
+        metrics.update(self.video_outputs(system, run_dir, eval_views[0]))
+        if self.c["export"].get("enabled", True):
+            metrics.update(self.compare_meshes(system, run_dir))
+        return metrics
+
+    @torch.no_grad()
+    def video_outputs(self, system, run_dir: Path, ref: dict[str, Any]) -> dict[str, Any]:
+        """The source | stylized orbit video (``stylize.video_frames`` frames at the size of view ``ref``) and the
+        view-consistency error along it; nothing with ``stylize.video_frames=0``."""
+        from nerfart_plugin.data.camera_path import orbit_path
+        from nerfart_plugin.evaluation import view_consistency
+        from nerfart_plugin.export.video import side_by_side, write_video
+        from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8
+
+        sc = self.c["stylize"]
         n = int(sc.get("video_frames", 24))
+        metrics: dict[str, Any] = {"view_consistency_error": None}
+        if n <= 0:
+            return metrics
         c2ws = orbit_path(self.scene, n)
-        ref = eval_views[0]
         K = self.scene.K[0].clone()
         K[0] *= ref["W"] / self.scene.width
         K[1] *= ref["H"] / self.scene.height
@@ -341,10 +385,7 @@ class Pipeline:
             Kd = K.to(self.device)
             metrics["view_consistency_error"] = view_consistency(sty_frames, Kd, c2ws)
             metrics["view_consistency_error_source"] = view_consistency(src_frames, Kd, c2ws)
-        else:
-            metrics["view_consistency_error"] = None  # depth is NDC t: warping not implemented for NDC
-        if self.c["export"].get("enabled", True):
-            metrics.update(self.compare_meshes(system, run_dir))
+        # NDC: depth is NDC t, warping not implemented: view_consistency_error stays None
         return metrics
 
     # ------------------------------------------------------------------ meshes

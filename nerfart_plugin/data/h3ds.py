@@ -24,6 +24,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from nerfart_plugin.config_types import HoldoutEvery, Resolution
 from nerfart_plugin.data.common import make_scene, require_dir
 from nerfart_plugin.data.images import find_mask_folder, list_images, match_masks, read_image_set
 from nerfart_plugin.data.normalize import detect_capture
@@ -111,8 +112,8 @@ def read_cameras_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @register("data", "h3ds")
 def load_h3ds(
     path: Any,
-    resolution: Optional[int] = None,
-    holdout_every: int = 8,
+    resolution: Resolution = None,
+    holdout_every: HoldoutEvery = 8,
     use_masks: bool = True,
     cameras_file: Optional[str] = None,
     **unused: Any,

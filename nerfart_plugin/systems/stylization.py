@@ -118,7 +118,8 @@ class StylizationSystem(RenderSystem):
         self.lambdas = {
             "dir": float(self.exp.get("lambda_dir", 1.0)),
             "global": float(self.exp.get("lambda_global", 0.2)),
-            "local": float(self.exp.get("lambda_local", 0.1)),
+            # stylize.local_patches=0: no local patches, so no local term
+            "local": float(self.exp.get("lambda_local", 0.1)) if int(self.cfg.get("local_patches", 4)) > 0 else 0.0,
             "perceptual": float(self.exp.get("lambda_perceptual", 2.0)),
             "reg": float(self.exp.get("lambda_reg", 0.1)),
             "eikonal": float(self.cfg.get("lambda_eikonal", 0.1)) if self.field.is_sdf and not self.freeze_geometry else 0.0,
