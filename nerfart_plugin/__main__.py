@@ -41,13 +41,18 @@ def _app(cfg: DictConfig) -> float | None:
     from hydra.types import RunMode
     from omegaconf import OmegaConf
 
-    from nerfart_plugin.errors import ConfigError, NerfArtError
+    from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
     from nerfart_plugin.pipeline import run
     from nerfart_plugin.sweep import objective
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
         results = run(cfg)
+    except (RunInterrupted, KeyboardInterrupt) as exc:
+        # Ctrl-C: the run folder is resumable; say so and stop (a sweep too), exit code 130 as for SIGINT
+        message = str(exc) if isinstance(exc, RunInterrupted) else "interrupted; run the same command again to continue"
+        log.error("RunInterrupted: %s", message)
+        sys.exit(130)
     except NerfArtError as exc:
         # The project's own errors already say what is wrong and how to fix it: no traceback.
         log.error("%s: %s", type(exc).__name__, exc)
@@ -63,11 +68,34 @@ def _app(cfg: DictConfig) -> float | None:
         return None
 
 
+#: flags with which Hydra runs no job (nothing is written)
+_NO_JOB_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion", "-sc",
+                 "--version")
+
+
+def check_output_root(argv: list[str]) -> None:
+    """ConfigError before Hydra writes its run folder under ``output_root`` when that cannot be written
+    (a read-only folder, a file in the way, a missing parent that cannot be created, a full disk)."""
+    from omegaconf import OmegaConf
+
+    from nerfart_plugin.overrides import override_value
+    from nerfart_plugin.utils.io import check_writable_dir
+
+    if any(a in _NO_JOB_FLAGS for a in argv):
+        return
+    root = override_value(argv, "output_root")
+    if root is None:
+        root = OmegaConf.load(config_dir() / "config.yaml").get("output_root")
+    if isinstance(root, str) and "${" not in root:
+        check_writable_dir(root, "output_root")
+
+
 def main() -> None:
     from nerfart_plugin.errors import ConfigError
 
     try:
         argv = normalize_overrides(sys.argv[1:])
+        check_output_root(argv)
     except ConfigError as exc:
         print(f"ConfigError: {exc}", file=sys.stderr)
         sys.exit(2)

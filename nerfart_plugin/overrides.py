@@ -116,6 +116,19 @@ def _is_quoted(key: str, value: str) -> bool:
     return parsed is not None and not parsed.is_sweep_override() and value.strip()[:1] in ("'", '"')
 
 
+def override_value(argv: list[str], key: str) -> Optional[Any]:
+    """The value the last ``key=`` / ``+key=`` / ``++key=`` override of ``argv`` sets (None if none, or a sweep)."""
+    value = None
+    for arg in argv:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        k, v = arg.lstrip("+").split("=", 1)
+        if k == key:
+            parsed = _parse(k, v)
+            value = None if parsed is None or parsed.is_sweep_override() else parsed.value()
+    return value
+
+
 # ---------------------------------------------------------------------- + folding
 @dataclass
 class PrimaryConfig:

@@ -85,6 +85,8 @@ class StylizationSystem(RenderSystem):
             (e.g. ``_UNSTYLED-toy`` when the guidance is not a real CLIP).
     """
 
+    stage = "stylize"
+
     def __init__(self, cfg: dict, experiment: dict, backbone_cfg: dict, encoding_cfg: dict, render_cfg: dict,
                  setup: SceneSetup, source_state: dict, views: list[dict], guidance: Any, perceptual: Any,
                  prompt: str, source_prompt: str, negatives: list[str], seed: int = 0,
@@ -94,6 +96,7 @@ class StylizationSystem(RenderSystem):
         self.cfg, self.exp = dict(cfg), dict(experiment)
         self.setup_info = setup
         self.renderer = build_renderer(backbone_cfg, encoding_cfg, render_cfg, setup)
+        self.remember_model(backbone_cfg, encoding_cfg, setup)
         self.renderer.load_state_dict(source_state)
         source = build_renderer(backbone_cfg, encoding_cfg, render_cfg, setup)
         source.load_state_dict(source_state)
