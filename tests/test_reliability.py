@@ -110,6 +110,21 @@ def test_a_held_run_folder_stops_or_waits_and_names_the_holder(tmp_path, caplog)
     assert not lock_path(run_dir).with_suffix(".lock.json").exists()  # the holder note is removed on release
 
 
+def test_ddp_worker_ranks_do_not_wait_for_the_lock_of_their_rank_0(tmp_path, monkeypatch):
+    from nerfart_plugin.utils.lock import run_lock
+
+    run_dir = tmp_path / "reconstructions" / "run"
+    holder = _hold_lock(run_dir, 3.0)  # rank 0 of the launch holds the run folder
+    try:
+        monkeypatch.setenv("LOCAL_RANK", "1")  # as Lightning's launcher sets it for the worker processes
+        t0 = time.time()
+        with run_lock(run_dir, 0):
+            assert time.time() - t0 < 1.0
+    finally:
+        holder.kill()
+        holder.wait()
+
+
 @pytest.mark.slow
 def test_two_processes_on_the_same_run_do_not_collide(tmp_path):
     """The same command twice at once: one reconstructs, the other waits for it and reuses the result."""

@@ -26,6 +26,16 @@ from nerfart_plugin.errors import RunLockedError
 log = logging.getLogger(__name__)
 
 
+def process_rank() -> int:
+    """0 for the process that leads a run (a plain run, or rank 0 of a DDP / Slurm / torchrun launch), else
+    the first non-zero rank the launcher set (global, local or node rank)."""
+    for var in ("RANK", "SLURM_PROCID", "JSM_NAMESPACE_RANK", "NODE_RANK", "LOCAL_RANK"):
+        value = os.environ.get(var, "").strip()
+        if value.isdigit() and int(value) != 0:
+            return int(value)
+    return 0
+
+
 def lock_path(run_dir: Path) -> Path:
     """``<output_root>/.locks/<stage folder>-<run name>.lock`` for ``<output_root>/<stage folder>/<run name>``."""
     run_dir = Path(run_dir)
@@ -57,6 +67,9 @@ def run_lock(run_dir: Path, timeout: Optional[float]) -> Iterator[None]:
     """
     from filelock import FileLock, Timeout
 
+    if process_rank() != 0:  # DDP: rank 0 holds the lock for the run; its worker ranks must not wait for it
+        yield
+        return
     path = lock_path(run_dir)
     path.parent.mkdir(parents=True, exist_ok=True)
     lock = FileLock(str(path))
