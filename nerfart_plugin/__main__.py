@@ -96,8 +96,8 @@ def main() -> None:
     try:
         argv = normalize_overrides(sys.argv[1:])
         check_output_root(argv)
-    except ConfigError as exc:
-        print(f"ConfigError: {exc}", file=sys.stderr)
+    except ConfigError as exc:  # before Hydra configures logging: Python's last-resort handler prints it to stderr
+        log.error("ConfigError: %s", exc)
         sys.exit(2)
     sys.argv = [sys.argv[0], *argv]
     _app()

@@ -141,10 +141,11 @@ def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: lis
 def _interrupted(trainer: L.Trainer, stop: Any, run_dir: Optional[Path]) -> str:
     """What an interrupted fit says: the step and how to resume."""
     last = run_dir / "last.ckpt" if run_dir is not None else None
-    step = getattr(stop, "stopped_at", None)
-    saved = getattr(getattr(stop, "checkpoint", None), "_last_saved", -1)
-    at = f"step {step}" if step is not None else f"step {trainer.global_step} (last checkpoint: step {saved})" \
-        if saved >= 0 else f"step {trainer.global_step}"
+    step = getattr(stop, "stopped_at", None)  # a graceful stop: checkpoint written at this step
+    at = f"step {step}"
+    if step is None:  # stopped at once (a second Ctrl-C): the last periodic checkpoint is the resume point
+        saved = getattr(getattr(stop, "checkpoint", None), "_last_saved", -1)
+        at = f"step {trainer.global_step}" + (f" (last checkpoint: step {saved})" if saved >= 0 else "")
     if last is not None and last.exists():
         return f"interrupted at {at}; run the same command again to resume from {last}"
     return f"interrupted at {at}, before the first checkpoint; run the same command again to start it over"

@@ -189,9 +189,11 @@ class TrainerConfig(Section):
     @field_validator("strategy")
     @classmethod
     def _lightning_strategy(cls, value: str) -> str:
+        if value.lower() == "auto":
+            return value
         from lightning.pytorch.strategies import StrategyRegistry
 
-        if value.lower() != "auto" and value.lower() not in StrategyRegistry.available_strategies():
+        if value.lower() not in StrategyRegistry.available_strategies():
             raise ValueError(f"unknown Lightning strategy {value!r}")
         return value
 
