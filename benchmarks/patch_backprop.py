@@ -219,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
             if all(res[m]["status"] == "ok" for m in ("full", "patch")):
                 import torch
 
-                diff = max_rel_diff(torch.load(Path(tmp) / f"full_{size}.pt"), torch.load(Path(tmp) / f"patch_{size}.pt"))
+                diff = max_rel_diff(torch.load(Path(tmp) / f"full_{size}.pt", weights_only=True),
+                                    torch.load(Path(tmp) / f"patch_{size}.pt", weights_only=True))
             raw.append({"size": size, **res, "max_rel_grad_diff": diff})
             cell = lambda m, k, f: (f(res[m][k]) if res[m]["status"] == "ok" else res[m].get("note", res[m]["status"]))
             mib = lambda b: f"{b / 2**20:.0f}"

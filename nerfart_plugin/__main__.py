@@ -3,16 +3,15 @@
 Examples::
 
     python -m nerfart_plugin +backbone=neus +prompt=Joker
-    python -m nerfart_plugin backbone=volsdf prompt="Tolkien Elf" stage=reconstruct
-    python -m nerfart_plugin -m backbone=neus,volsdf +prompt=Joker,Pixar
+    python -m nerfart_plugin backbone=volsdf +prompt="Van Gogh's Starry Night" stage=reconstruct
+    python -m nerfart_plugin -m backbone=neus,volsdf +prompt=Joker +prompt="jack-o'-lantern"
     python -m nerfart_plugin --cfg job          # print the composed config
     python -m nerfart_plugin --help             # groups and options
 
-Hydra 1.3 refuses ``+key=value`` when ``key`` already has a default (the groups
-``backbone``, ``data``, ... and keys such as ``prompt``) with "Multiple values
-for ..." / "Could not append to config". Users naturally type ``+prompt=Joker``,
-so :func:`normalize_overrides` folds that ``+`` into a plain override before
-Hydra parses the command line. ``++`` (force-add) is left alone.
+Before Hydra parses the command line, :func:`normalize_overrides`
+(:mod:`nerfart_plugin.overrides`) quotes prompt text for Hydra's grammar (any
+prompt works; repeat ``+prompt=`` to sweep several) and folds ``+key`` into a
+plain override where Hydra 1.3 would refuse it (a key that already has a default).
 """
 
 from __future__ import annotations
@@ -24,20 +23,10 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from nerfart_plugin.config_paths import config_dir, primary_keys
+from nerfart_plugin.config_paths import config_dir
+from nerfart_plugin.overrides import PrimaryConfig, normalize_overrides  # noqa: F401  (public: used by tests)
 
-
-def normalize_overrides(argv: list[str], known: set[str]) -> list[str]:
-    """Turn ``+key=value`` into ``key=value`` for keys that already have a default."""
-    out = []
-    for arg in argv:
-        if arg.startswith("+") and not arg.startswith("++") and "=" in arg:
-            key = arg[1:].split("=", 1)[0]
-            root = key.split(".", 1)[0].split("@", 1)[0]
-            if key in known or root in known:
-                arg = arg[1:]
-        out.append(arg)
-    return out
+log = logging.getLogger("nerfart_plugin")
 
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
@@ -52,16 +41,21 @@ def _app(cfg: DictConfig) -> float | None:
     from hydra.types import RunMode
     from omegaconf import OmegaConf
 
-    from nerfart_plugin.errors import ConfigError, NerfArtError
+    from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
     from nerfart_plugin.pipeline import run
     from nerfart_plugin.sweep import objective
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
         results = run(cfg)
+    except (RunInterrupted, KeyboardInterrupt) as exc:
+        # Ctrl-C: the run folder is resumable; say so and stop (a sweep too), exit code 130 as for SIGINT
+        message = str(exc) if isinstance(exc, RunInterrupted) else "interrupted; run the same command again to continue"
+        log.error("RunInterrupted: %s", message)
+        sys.exit(130)
     except NerfArtError as exc:
         # The project's own errors already say what is wrong and how to fix it: no traceback.
-        logging.getLogger("nerfart_plugin").error("%s: %s", type(exc).__name__, exc)
+        log.error("%s: %s", type(exc).__name__, exc)
         hc = HydraConfig.get()
         if hc.mode == RunMode.MULTIRUN:  # keep the sweep going; the summary shows the failure
             atomic_write_json(Path(hc.runtime.output_dir) / "result.json", {"error": f"{type(exc).__name__}: {exc}"})
@@ -70,12 +64,42 @@ def _app(cfg: DictConfig) -> float | None:
     try:
         return objective(results, OmegaConf.select(cfg, "objective", default="auto"))
     except ConfigError as exc:
-        logging.getLogger("nerfart_plugin").debug("no sweep objective: %s", exc)
+        log.debug("no sweep objective: %s", exc)
         return None
 
 
+#: flags with which Hydra runs no job (nothing is written)
+_NO_JOB_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", "--shell-completion", "-sc",
+                 "--version")
+
+
+def check_output_root(argv: list[str]) -> None:
+    """ConfigError before Hydra writes its run folder under ``output_root`` when that cannot be written
+    (a read-only folder, a file in the way, a missing parent that cannot be created, a full disk)."""
+    from omegaconf import OmegaConf
+
+    from nerfart_plugin.overrides import override_value
+    from nerfart_plugin.utils.io import check_writable_dir
+
+    if any(a in _NO_JOB_FLAGS for a in argv):
+        return
+    root = override_value(argv, "output_root")
+    if root is None:
+        root = OmegaConf.load(config_dir() / "config.yaml").get("output_root")
+    if isinstance(root, str) and "${" not in root:
+        check_writable_dir(root, "output_root")
+
+
 def main() -> None:
-    sys.argv = [sys.argv[0], *normalize_overrides(sys.argv[1:], primary_keys())]
+    from nerfart_plugin.errors import ConfigError
+
+    try:
+        argv = normalize_overrides(sys.argv[1:])
+        check_output_root(argv)
+    except ConfigError as exc:  # before Hydra configures logging: Python's last-resort handler prints it to stderr
+        log.error("ConfigError: %s", exc)
+        sys.exit(2)
+    sys.argv = [sys.argv[0], *argv]
     _app()
 
 

@@ -21,3 +21,15 @@ class WeightsMissingError(NerfArtError, RuntimeError):
 
 class TrainingDivergedError(NerfArtError, RuntimeError):
     """A loss or gradient became NaN/inf during training."""
+
+
+class CheckpointError(NerfArtError, ValueError):
+    """A checkpoint cannot be read safely, or does not fit the configured model."""
+
+
+class RunLockedError(NerfArtError, RuntimeError):
+    """Another process holds the run folder (and did not release it within ``lock_timeout``)."""
+
+
+class RunInterrupted(NerfArtError):
+    """The run was interrupted (Ctrl-C); it resumes from its last checkpoint when started again."""

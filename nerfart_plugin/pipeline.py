@@ -14,6 +14,13 @@ Folders (under ``output_root``, default ``outputs/``):
 Re-running the same command resumes from ``last.ckpt`` (``resume=true``); a
 finished run is not recomputed or overwritten. ``resume=false`` moves an
 unfinished folder aside (kept, renamed ``*.abandoned-<time>``) and starts over.
+
+Reliability: the config is validated before anything is loaded (:mod:`nerfart_plugin.schema`),
+the output root must be writable, each run folder is locked while a stage works in it
+(:mod:`nerfart_plugin.utils.lock`, ``lock_timeout``), Ctrl-C stops at a step boundary with
+a checkpoint (:class:`~nerfart_plugin.systems.callbacks.GracefulInterrupt`, exit code 130),
+and checkpoints are read without running code and checked against the model
+(:mod:`nerfart_plugin.checkpoints`).
 """
 
 from __future__ import annotations
@@ -32,10 +39,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from nerfart_plugin import registry
-from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.checkpoints import (META_KEY, allow_project_types, check_fits, checkpoint_meta, load_checkpoint,
+                                        prefixed_state)
+from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.utils.device import pick_device
-from nerfart_plugin.utils.io import atomic_path, atomic_write_json, atomic_write_text
+from nerfart_plugin.utils.io import atomic_path, atomic_write_json, atomic_write_text, check_writable_dir
+from nerfart_plugin.utils.lock import run_lock
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -57,13 +66,16 @@ def _container(cfg: DictConfig | dict) -> dict:
     return OmegaConf.to_container(cfg, resolve=True) if isinstance(cfg, DictConfig) else dict(cfg)
 
 
-def validate_config(c: dict) -> None:
-    """Cheap checks before anything is loaded: stage, component names, prompt."""
-    if c.get("stage") not in STAGES:
-        raise ConfigError(f"stage={c.get('stage')!r} is not valid; use one of {', '.join(STAGES)}.")
-    registry.get("backbone", c["backbone"]["name"])
-    registry.get("encoding", c["encoding"]["name"])
-    registry.get("data", c["data"]["kind"])
+def validate_config(c: dict) -> dict:
+    """Every setting checked before anything is loaded (:mod:`nerfart_plugin.schema`: types, ranges,
+    choices, unknown keys), then what depends on the stage: multi-device only for the reconstruction,
+    a prompt for stylization, an existing ``source_checkpoint``, an available ``device``.
+
+    Returns the config with the values validation converted (``"512"`` -> 512).
+    """
+    from nerfart_plugin import schema
+
+    c = schema.validate_config(c)
     tc = c.get("trainer", {})
     distributed = tc.get("strategy", "auto") not in ("auto", None) or int(tc.get("num_nodes", 1)) != 1 \
         or tc.get("devices", 1) not in (1, "1")
@@ -73,13 +85,39 @@ def validate_config(c: dict) -> None:
                           "backward passes (Section 4.4) on one device. Run stage=reconstruct with DDP, then "
                           "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1.")
     if c["stage"] in ("stylize", "all"):
-        registry.get("guidance", c["guidance"]["name"])
         from nerfart_plugin.guidance import validate_prompt
 
         if c.get("prompt") is None:
             raise ConfigError("stage=%s needs a style prompt: add +prompt=\"Vincent van Gogh\" (or stage=reconstruct)."
                               % c["stage"])
         validate_prompt(c["prompt"])
+    src = c.get("source_checkpoint")
+    if src and not Path(src).expanduser().is_file():
+        raise ConfigError(f"source_checkpoint={src}: no such file. Point it at the final.ckpt of a reconstruction "
+                          "(outputs/reconstructions/<run>/final.ckpt) or leave it out to use the cached one.")
+    check_device(str(c.get("device", "auto")), c.get("trainer", {}).get("devices", 1))
+    return c
+
+
+def check_device(device: str, devices: Any = 1) -> None:
+    """ConfigError if ``device`` names an accelerator this machine does not have, or ``trainer.devices``
+    is a GPU-only form (-1, a list of ids) for a CPU / MPS run."""
+    if device.startswith("cuda"):
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        index = int(device.split(":", 1)[1]) if ":" in device else 0
+        if index >= n:
+            raise ConfigError(f"device={device}: this machine has {n} CUDA device(s) (torch.cuda.device_count()); "
+                              "use device=auto (the best available) or device=cpu.")
+    if device == "mps":
+        mps = getattr(torch.backends, "mps", None)
+        if mps is None or not mps.is_available():
+            raise ConfigError("device=mps: Apple's Metal backend is not available here; use device=auto or device=cpu.")
+    kind = pick_device(device).type
+    if kind != "cuda" and not (devices == "auto" or (isinstance(devices, int) and devices >= 1)):
+        from nerfart_plugin.schema import show
+
+        raise ConfigError(f"trainer.devices={show(devices)}: on {kind} give a number of processes N >= 1 (or auto); "
+                          "-1 and lists of device ids select GPUs (device=cuda).")
 
 
 def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: list, tc: dict, **kw: Any) -> L.Trainer:
@@ -101,6 +139,19 @@ def _trainer(run_dir: Path, max_steps: int, device: torch.device, callbacks: lis
     )
 
 
+def _interrupted(trainer: L.Trainer, stop: Any, run_dir: Optional[Path]) -> str:
+    """What an interrupted fit says: the step and how to resume."""
+    last = run_dir / "last.ckpt" if run_dir is not None else None
+    step = getattr(stop, "stopped_at", None)  # a graceful stop: checkpoint written at this step
+    at = f"step {step}"
+    if step is None:  # stopped at once (a second Ctrl-C): the last periodic checkpoint is the resume point
+        saved = getattr(getattr(stop, "checkpoint", None), "_last_saved", -1)
+        at = f"step {trainer.global_step}" + (f" (last checkpoint: step {saved})" if saved >= 0 else "")
+    if last is not None and last.exists():
+        return f"interrupted at {at}; run the same command again to resume from {last}"
+    return f"interrupted at {at}, before the first checkpoint; run the same command again to start it over"
+
+
 def _prepare_dir(run_dir: Path, resume: bool) -> None:
     if run_dir.exists() and not resume and not (run_dir / "final.ckpt").exists():
         aside = run_dir.with_name(f"{run_dir.name}.abandoned-{time.strftime('%Y%m%d-%H%M%S')}")
@@ -109,24 +160,23 @@ def _prepare_dir(run_dir: Path, resume: bool) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
 
 
+_SOURCE_FIX = ("Pass source_checkpoint= the final.ckpt of a reconstruction made with this backbone and encoding, or "
+               "leave it out to use (or make) the cached reconstruction of these settings.")
+
+
 def _renderer_state(ckpt_path: Path) -> dict[str, torch.Tensor]:
-    try:
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        state = ckpt["state_dict"]
-    except Exception as exc:  # noqa: BLE001 - any unreadable checkpoint gets the same clear error
-        raise NerfArtError(f"Cannot read checkpoint {ckpt_path}: {exc}. Delete it to recompute, or pass "
-                           "source_checkpoint= pointing to a final.ckpt of a reconstruction.") from exc
-    return {k[len("renderer."):]: v for k, v in state.items() if k.startswith("renderer.")}
+    """The renderer tensors of a reconstruction / stylization checkpoint, read without running code."""
+    return prefixed_state(load_checkpoint(ckpt_path, fix=_SOURCE_FIX), "renderer.")
 
 
 class Pipeline:
     """One configured job: loads the scene once and runs the requested stages."""
 
     def __init__(self, cfg: DictConfig | dict) -> None:
-        self.c = _container(cfg)
-        validate_config(self.c)
+        self.c = validate_config(_container(cfg))
         self.device = pick_device(self.c.get("device", "auto"))
-        self.root = Path(self.c.get("output_root", "outputs"))
+        self.root = check_writable_dir(self.c.get("output_root", "outputs"), "output_root")
+        self.lock_timeout: Optional[float] = self.c.get("lock_timeout")
         self.resume = bool(self.c.get("resume", True))
         self.results: dict[str, Any] = {"stage": self.c["stage"]}
         self.guidance = self.perceptual = None
@@ -178,31 +228,38 @@ class Pipeline:
 
     # ------------------------------------------------------------------ stage 1
     def reconstruct(self) -> Path:
-        from nerfart_plugin.systems.callbacks import AtomicCheckpoint, FiniteGradientGuard
-        from nerfart_plugin.systems.base import steps_loader
+        """Stage 1 into ``recon_dir`` (locked while it runs); a finished reconstruction is reused."""
+        run_dir = self.recon_dir
+        if not (run_dir / "final.ckpt").exists():
+            with run_lock(run_dir, self.lock_timeout):
+                if not (run_dir / "final.ckpt").exists():  # not finished meanwhile by the process we waited for
+                    return self._reconstruct(run_dir)
+        log.info("reusing the cached reconstruction %s (same data, backbone and settings)", run_dir)
+        self.results["reconstruction"] = {"dir": str(run_dir)}  # metrics: run_dir/metrics.json
+        return run_dir / "final.ckpt"
+
+    def _reconstruct(self, run_dir: Path) -> Path:
+        from nerfart_plugin.systems.callbacks import AtomicCheckpoint, FiniteGradientGuard, GracefulInterrupt
         from nerfart_plugin.systems.reconstruction import ReconstructionSystem
 
-        run_dir, rc = self.recon_dir, self.c["reconstruct"]
-        final = run_dir / "final.ckpt"
-        if final.exists():
-            log.info("reusing the cached reconstruction %s (same data, backbone and settings)", run_dir)
-            self.results["reconstruction"] = {"dir": str(run_dir)}  # metrics: run_dir/metrics.json
-            return final
+        rc, final = self.c["reconstruct"], run_dir / "final.ckpt"
         _prepare_dir(run_dir, self.resume)
         atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(self.c)))
         self.dm.setup("fit")
         system = ReconstructionSystem(rc, *self._components(), self.setup, train_rays=self.dm.train_rays,
                                       seed=self.c["seed"], out_dir=str(run_dir))
         ckpt = AtomicCheckpoint(run_dir, rc.get("checkpoint_every", 100))
-        trainer = _trainer(run_dir, int(rc["steps"]), self.device, [ckpt, FiniteGradientGuard()], self.c["trainer"],
-                           val_check_interval=int(rc.get("val_every", 500)), check_val_every_n_epoch=None,
-                           limit_val_batches=int(rc.get("val_views", 2)) or 1.0)
-        last = run_dir / "last.ckpt"
-        ckpt_path = str(last) if last.exists() else None
-        if ckpt_path:
-            log.info("resuming the reconstruction from %s", last)
+        stop = GracefulInterrupt(ckpt)
+        val_every = int(rc.get("val_every", 500))
+        val_kw: dict[str, Any] = (dict(val_check_interval=val_every, check_val_every_n_epoch=None,
+                                       limit_val_batches=int(rc.get("val_views", 2)) or 1.0)
+                                  if val_every > 0 else dict(limit_val_batches=0))  # val_every=0: no validation
+        trainer = _trainer(run_dir, int(rc["steps"]), self.device, [ckpt, stop, FiniteGradientGuard()],
+                           self.c["trainer"], **val_kw)
+        ckpt_path = self._resume_point(run_dir, system, "reconstruction")
         t0 = time.perf_counter()
-        self._fit(trainer, system, val=self.dm.val_dataloader(), ckpt_path=ckpt_path)
+        self._fit(trainer, system, val=self.dm.val_dataloader() if val_every > 0 else None, ckpt_path=ckpt_path,
+                  stop=stop, run_dir=run_dir)
         seconds = time.perf_counter() - t0
         if trainer.global_rank != 0:  # DDP: evaluation and outputs on rank 0 only
             return final
@@ -215,25 +272,50 @@ class Pipeline:
         if self.c["export"].get("enabled", True):
             self.export_mesh(system.renderer.field, run_dir / "mesh" / "source")
         with atomic_path(final) as tmp:
-            trainer.save_checkpoint(tmp, weights_only=False)
+            trainer.save_checkpoint(tmp)
         log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics.get("psnr", float("nan")), run_dir)
         self.results["reconstruction"] = {"dir": str(run_dir), **{k: metrics[k] for k in metrics
                                                                    if k.startswith(("psnr", "ssim"))}}
         return final
 
-    def _fit(self, trainer: L.Trainer, system: L.LightningModule, val: Any = None, ckpt_path: Optional[str] = None) -> None:
+    def _resume_point(self, run_dir: Path, system: L.LightningModule, what: str) -> Optional[str]:
+        """``run_dir/last.ckpt`` if there is one (read safely and checked against ``system``), else None."""
+        last = run_dir / "last.ckpt"
+        if not last.exists():
+            return None
+        fix = f"Delete {last} (or run with resume=false, which keeps the old folder aside) to start this {what} over."
+        ckpt = load_checkpoint(last, fix=fix)
+        check_fits(system, ckpt["state_dict"], last, ckpt.get(META_KEY), system.model_meta, fix)
+        log.info("resuming the %s from %s (step %s)", what, last, ckpt.get("global_step", "?"))
+        return str(last)
+
+    def _fit(self, trainer: L.Trainer, system: L.LightningModule, val: Any = None, ckpt_path: Optional[str] = None,
+             stop: Any = None, run_dir: Optional[Path] = None) -> None:
+        """``trainer.fit`` on the steps loader; checkpoints are read with ``weights_only=True``.
+
+        Raises:
+            RunInterrupted: Ctrl-C (``stop`` is the run's :class:`GracefulInterrupt`), naming the step and the
+                checkpoint to resume from.
+            NerfArtError: out of memory, naming the settings to lower.
+        """
         from nerfart_plugin.systems.base import steps_loader
 
         try:
-            # our own checkpoints (they hold optimizer and loop state, not only tensors)
-            trainer.fit(system, train_dataloaders=steps_loader(), val_dataloaders=val, ckpt_path=ckpt_path,
-                        weights_only=False)
+            with allow_project_types():
+                trainer.fit(system, train_dataloaders=steps_loader(), val_dataloaders=val, ckpt_path=ckpt_path,
+                            weights_only=True)
         except torch.OutOfMemoryError as exc:
             raise NerfArtError(_OOM_HINT) from exc
         except RuntimeError as exc:
             if "out of memory" in str(exc).lower():
                 raise NerfArtError(_OOM_HINT) from exc
             raise
+        except SystemExit:  # Lightning >= 2.5 ends an interrupted fit with sys.exit(1)
+            if trainer.interrupted:
+                raise RunInterrupted(_interrupted(trainer, stop, run_dir)) from None
+            raise
+        if trainer.interrupted or (stop is not None and stop.requested):
+            raise RunInterrupted(_interrupted(trainer, stop, run_dir))
 
     @torch.no_grad()
     def evaluate_reconstruction(self, system) -> dict[str, Any]:
@@ -253,10 +335,8 @@ class Pipeline:
 
     # ------------------------------------------------------------------ stage 2
     def stylize(self, recon_ckpt: Path) -> Path:
-        from nerfart_plugin.guidance import default_source_prompt, resolve_negatives
-        from nerfart_plugin.systems.base import steps_loader
-        from nerfart_plugin.systems.callbacks import AtomicCheckpoint
-        from nerfart_plugin.systems.stylization import StylizationSystem, style_views
+        """Stage 2 into its run folder (locked while it runs); a finished stylization is not redone."""
+        from nerfart_plugin.guidance import default_source_prompt
 
         sc, exp = self.stylize_settings(), self.c["experiment"]
         src_prompt = self.c.get("source_prompt", "auto")
@@ -268,26 +348,47 @@ class Pipeline:
                            "stylize": {k: v for k, v in sc.items() if k not in ("render_every", "checkpoint_every",
                                                                                 "video_frames", "video_fps")}})
         run_dir = self.root / "stylizations" / f"{slug(self.raw_prompt)}-{self.c['backbone']['name']}-{key}{self.stamp}"
-        final = run_dir / "final.ckpt"
-        if final.exists():
-            log.info("this stylization is already complete: %s (not recomputed, not overwritten)", run_dir)
-            self.results["stylization"] = {"dir": str(run_dir)}
-            return final
+        if not (run_dir / "final.ckpt").exists():
+            with run_lock(run_dir, self.lock_timeout):
+                if not (run_dir / "final.ckpt").exists():
+                    return self._stylize(run_dir, recon_ckpt, src_prompt)
+        log.info("this stylization is already complete: %s (not recomputed, not overwritten)", run_dir)
+        self.results["stylization"] = {"dir": str(run_dir)}
+        return run_dir / "final.ckpt"
+
+    def _source_state(self, ckpt_path: Path) -> dict[str, torch.Tensor]:
+        """The renderer tensors of the reconstruction ``ckpt_path``, read safely and checked to fit this run's
+        backbone / encoding / scene setup (the error names the file and what differs)."""
+        from nerfart_plugin.systems.base import build_renderer
+
+        ckpt = load_checkpoint(ckpt_path, fix=_SOURCE_FIX)
+        state = prefixed_state(ckpt, "renderer.")
+        probe = build_renderer(*self._components(), self.setup)
+        here = checkpoint_meta("reconstruct", self.c["backbone"], self.c["encoding"], self.setup)
+        check_fits(probe, state, ckpt_path, ckpt.get(META_KEY), here, _SOURCE_FIX)
+        return state
+
+    def _stylize(self, run_dir: Path, recon_ckpt: Path, src_prompt: str) -> Path:
+        from nerfart_plugin.guidance import resolve_negatives
+        from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt
+        from nerfart_plugin.systems.stylization import StylizationSystem, style_views
+
+        sc, exp, final = self.stylize_settings(), self.c["experiment"], run_dir / "final.ckpt"
+        source_state = self._source_state(recon_ckpt)
         _prepare_dir(run_dir, self.resume)
         atomic_write_text(run_dir / "config.yaml", OmegaConf.to_yaml(OmegaConf.create(self.c)))
         views = style_views(self.scene, self.scene.train_ids, int(sc["resolution"]), self.dm.ndc)
-        system = StylizationSystem(sc, exp, *self._components(), self.setup, _renderer_state(recon_ckpt), views,
+        system = StylizationSystem(sc, exp, *self._components(), self.setup, source_state, views,
                                    self.guidance, self.perceptual, self.prompt, src_prompt,
                                    resolve_negatives(sc.get("negatives", "auto"), self.guidance, self.prompt),
                                    seed=self.c["seed"], out_dir=str(run_dir), stamp=self.stamp,
                                    raw_prompt=self.raw_prompt)
         ckpt = AtomicCheckpoint(run_dir, sc.get("checkpoint_every", 10))
-        trainer = _trainer(run_dir, int(sc["steps"]), self.device, [ckpt], self.c["trainer"], limit_val_batches=0)
-        last = run_dir / "last.ckpt"
-        if last.exists():
-            log.info("resuming the stylization from %s", last)
+        stop = GracefulInterrupt(ckpt)
+        trainer = _trainer(run_dir, int(sc["steps"]), self.device, [ckpt, stop], self.c["trainer"], limit_val_batches=0)
+        ckpt_path = self._resume_point(run_dir, system, "stylization")
         t0 = time.perf_counter()
-        self._fit(trainer, system, ckpt_path=str(last) if last.exists() else None)
+        self._fit(trainer, system, ckpt_path=ckpt_path, stop=stop, run_dir=run_dir)
         seconds = time.perf_counter() - t0
         metrics = self.stylization_outputs(system, run_dir)
         metrics.update({"prompt": self.raw_prompt, "prompt_used": self.prompt, "source_prompt": src_prompt,
@@ -304,7 +405,7 @@ class Pipeline:
             metrics["WARNING"] = "UNSTYLED by a real model: random or toy guidance weights were used"
         atomic_write_json(run_dir / "metrics.json", metrics)
         with atomic_path(final) as tmp:
-            trainer.save_checkpoint(tmp, weights_only=False)
+            trainer.save_checkpoint(tmp)
         log.info("stylization done -> %s", run_dir)
         self.results["stylization"] = {"dir": str(run_dir), **{k: v for k, v in metrics.items()
                                                                if k.startswith(("clip_", "view_", "mesh_"))}}
@@ -324,11 +425,9 @@ class Pipeline:
     @torch.no_grad()
     def stylization_outputs(self, system, run_dir: Path) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
-        from nerfart_plugin.data.camera_path import orbit_path
-        from nerfart_plugin.evaluation import clip_scores, off_surface_share, silhouette_iou, view_consistency
+        from nerfart_plugin.evaluation import clip_scores, off_surface_share, silhouette_iou
         from nerfart_plugin.systems.base import to_device
-        from nerfart_plugin.export.video import side_by_side, write_video
-        from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8, style_views
+        from nerfart_plugin.systems.stylization import style_views
 
         system.to(self.device).eval()
         sc = self.stylize_settings()
@@ -351,10 +450,26 @@ class Pipeline:
                                                        for v in eval_views]))
         metrics["off_surface_weight_source"] = float(np.mean([off_surface_share(system.source, to_device(v, self.device))
                                                               for v in eval_views]))
-        # camera-path video, source | stylized, and view consistency along it
+        metrics.update(self.video_outputs(system, run_dir, eval_views[0]))
+        if self.c["export"].get("enabled", True):
+            metrics.update(self.compare_meshes(system, run_dir))
+        return metrics
+
+    @torch.no_grad()
+    def video_outputs(self, system, run_dir: Path, ref: dict[str, Any]) -> dict[str, Any]:
+        """The source | stylized orbit video (``stylize.video_frames`` frames at the size of view ``ref``) and the
+        view-consistency error along it; nothing with ``stylize.video_frames=0``."""
+        from nerfart_plugin.data.camera_path import orbit_path
+        from nerfart_plugin.evaluation import view_consistency
+        from nerfart_plugin.export.video import side_by_side, write_video
+        from nerfart_plugin.systems.stylization import camera_batch, image_to_uint8
+
+        sc = self.c["stylize"]
         n = int(sc.get("video_frames", 24))
+        metrics: dict[str, Any] = {"view_consistency_error": None}
+        if n <= 0:
+            return metrics
         c2ws = orbit_path(self.scene, n)
-        ref = eval_views[0]
         K = self.scene.K[0].clone()
         K[0] *= ref["W"] / self.scene.width
         K[1] *= ref["H"] / self.scene.height
@@ -372,10 +487,7 @@ class Pipeline:
             Kd = K.to(self.device)
             metrics["view_consistency_error"] = view_consistency(sty_frames, Kd, c2ws)
             metrics["view_consistency_error_source"] = view_consistency(src_frames, Kd, c2ws)
-        else:
-            metrics["view_consistency_error"] = None  # depth is NDC t: warping not implemented for NDC
-        if self.c["export"].get("enabled", True):
-            metrics.update(self.compare_meshes(system, run_dir))
+        # NDC: depth is NDC t, warping not implemented: view_consistency_error stays None
         return metrics
 
     def save_heldout(self, run_dir: Path, ids: list[int], src: torch.Tensor, sty: torch.Tensor) -> None:
@@ -452,7 +564,7 @@ class Pipeline:
             raise NerfArtError(f"stage=export: no checkpoint at {ckpt}. Run stage=reconstruct first or pass "
                                "source_checkpoint=/path/to/final.ckpt.")
         renderer = build_renderer(*self._components(), self.setup)
-        renderer.load_state_dict(_renderer_state(ckpt))
+        renderer.load_state_dict(self._source_state(ckpt))
         renderer.to(self.device).eval()
         stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.c['export']['resolution']}"
         mesh = self.export_mesh(renderer.field, stem)
@@ -460,6 +572,18 @@ class Pipeline:
 
     # ------------------------------------------------------------------ run
     def run(self) -> dict[str, Any]:
+        """Run the configured stages.
+
+        Raises:
+            RunInterrupted: Ctrl-C, at any point (the message says how to resume).
+        """
+        try:
+            return self._run()
+        except KeyboardInterrupt:  # outside training (loading, COLMAP, evaluation, export)
+            raise RunInterrupted("interrupted; nothing finished is lost: run the same command again to continue "
+                                 "(finished stages are reused, a stage in progress resumes from its last.ckpt)") from None
+
+    def _run(self) -> dict[str, Any]:
         stage = self.c["stage"]
         L.seed_everything(int(self.c["seed"]), workers=True, verbose=False)
         if stage in ("stylize", "all"):

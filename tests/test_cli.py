@@ -11,9 +11,11 @@ from pathlib import Path
 
 import pytest
 import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nerfart_plugin.__main__ import normalize_overrides
-from nerfart_plugin.config_paths import config_dir, group_options, primary_keys
+from nerfart_plugin.config_paths import config_dir, group_options
 
 from pipeline_helpers import run_cli
 
@@ -32,28 +34,28 @@ def _job_cfg(*args: str) -> dict:
 
 
 # ---------------------------------------------------------------------- normalize_overrides
-def test_normalize_overrides_folds_plus_for_known_keys():
-    known = primary_keys()
-    assert {"backbone", "prompt", "data", "stage", "render"} <= known
+def test_plus_is_folded_only_where_hydra_would_refuse_it():
     argv = [
-        "+backbone=neus",
-        "+prompt=Joker",
-        "+render.num_samples=8",
-        "++prompt=x",
-        "+newkey=1",
-        "+data@foo=h3ds",
+        "+backbone=neus",  # a group already in the defaults list
+        "+prompt=Joker",  # a key with a default (null)
+        "+render.num_samples=8",  # a nested key with a default
+        "++stage=all",  # force-add: Hydra's own
+        "+newkey=1",  # no default: Hydra adds it (the schema then refuses it clearly)
+        "+render.ndc_bound=2.0",  # no default: added (an optional key of the schema)
+        "+data@extra=h3ds",  # a second package of a group: Hydra adds it
         "-m",
         "stage=all",
         "+prompt",
         "hydra/sweeper=lambdas_optuna",
     ]
-    assert normalize_overrides(argv, known) == [
+    assert normalize_overrides(argv) == [
         "backbone=neus",
         "prompt=Joker",
         "render.num_samples=8",
-        "++prompt=x",
+        "++stage=all",
         "+newkey=1",
-        "data@foo=h3ds",
+        "+render.ndc_bound=2.0",
+        "+data@extra=h3ds",
         "-m",
         "stage=all",
         "+prompt",
@@ -61,12 +63,107 @@ def test_normalize_overrides_folds_plus_for_known_keys():
     ]
 
 
-def test_normalize_overrides_keeps_values_with_equals_and_spaces():
-    assert normalize_overrides(["+prompt=a=b c"], {"prompt"}) == ["prompt=a=b c"]
-    assert normalize_overrides(["+prompt=Joker,Pixar"], {"prompt"}) == [
-        "prompt=Joker,Pixar"
-    ]
-    assert normalize_overrides([], {"prompt"}) == []
+def test_plus_folding_follows_the_selected_group_options():
+    # data.factor has a default in data=llff only; data.fps in data=selfie only
+    assert normalize_overrides(["data=llff", "+data.factor=4", "+data.fps=3"]) == [
+        "data=llff", "data.factor=4", "+data.fps=3"]
+    assert normalize_overrides(["-m", "data=llff,selfie", "+data.fps=3"]) == ["-m", "data=llff,selfie", "data.fps=3"]
+    assert normalize_overrides(["+data.factor=4"]) == ["+data.factor=4"]
+    assert normalize_overrides([]) == []
+
+
+def test_plus_data_at_package_parses_as_in_hydra():
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    (arg,) = normalize_overrides(["+data@extra=h3ds"])
+    override = OverridesParser.create().parse_override(arg)
+    assert override.is_add() and override.key_or_group == "data" and override.package == "extra"
+    assert override.value() == "h3ds"
+
+
+PROMPTS = [
+    "Van Gogh's Starry Night",
+    "jack-o'-lantern",
+    "a portrait (oil on canvas), 1889: blue = calm",
+    'the "Joker"',
+    "Café Gaudí, 日本の浮世絵, Ökonomie",
+    "a=b c",
+    "50% ${x} \\ back\\slash",
+    "true",
+    "1984",
+    "  padded  ",
+]
+
+
+def test_prompts_are_quoted_for_hydra_and_arrive_intact():
+    for text in PROMPTS:
+        for key in ("prompt", "source_prompt"):
+            for plus in ("", "+"):
+                (arg,) = normalize_overrides([f"{plus}{key}={text}"])
+                assert _composed_value(arg, key) == text, (text, arg)
+
+
+def _composed_value(arg: str, key: str):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[arg])
+    return OmegaConf.to_container(cfg, resolve=True)[key]
+
+
+@settings(max_examples=300, deadline=None)
+@given(text=st.text(max_size=40))
+def test_any_text_survives_hydra_quoting(text):
+    """Any text (quotes, backslashes, ${, commas, any unicode) -> hydra_quote -> Hydra's parser -> OmegaConf."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from omegaconf import OmegaConf
+
+    from nerfart_plugin.overrides import hydra_quote
+
+    value = OverridesParser.create().parse_override("prompt=" + hydra_quote(text)).value()
+    assert OmegaConf.to_container(OmegaConf.create({"prompt": value}), resolve=True)["prompt"] == text
+
+
+def test_hydra_syntax_in_prompt_values_keeps_its_meaning():
+    assert normalize_overrides(["prompt='a,b'"]) == ["prompt='a,b'"]  # quoted by the user: one prompt
+    assert normalize_overrides(["-m", "prompt=choice(Joker,Pixar)"]) == ["-m", "prompt=choice(Joker,Pixar)"]
+    assert normalize_overrides(["-m", "+prompt=Joker,Pixar"]) == ["-m", "prompt=Joker,Pixar"]  # Hydra's sweep
+    assert normalize_overrides(["+prompt=Joker,Pixar"]) == ["prompt='Joker,Pixar'"]  # no -m: one prompt
+    assert normalize_overrides(["prompt=null"]) == ["prompt=null"]
+    assert normalize_overrides(["prompt=Tolkien Elf"]) == ["prompt=Tolkien Elf"]
+
+
+def test_repeated_prompts_are_one_sweep_each_taken_literally():
+    argv = ["-m", "+prompt=Joker", "+prompt=Van Gogh's Starry Night", "backbone=neus,volsdf", "+prompt=a, b"]
+    out = normalize_overrides(argv)
+    assert out == ["-m", "prompt='Joker','Van Gogh\\'s Starry Night','a, b'", "backbone=neus,volsdf"]
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    sweep = OverridesParser.create().parse_override(out[1])
+    assert [q.text for q in sweep.value().list] == ["Joker", "Van Gogh's Starry Night", "a, b"]
+    from nerfart_plugin.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="add -m"):
+        normalize_overrides(["+prompt=Joker", "+prompt=Pixar"])
+
+
+def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
+    """A real 2-job sweep: each job gets its prompt intact (they then stop at validation: no reconstruction)."""
+    out = tmp_path / "sweep"
+    proc = _cli("-m", "stage=stylize", "guidance=toy", f"output_root={out}", f"source_checkpoint={tmp_path}/none.ckpt",
+                "+prompt=Joker", "+prompt=Van Gogh's Starry Night, 1889 (Café)", timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    jobs = sorted(p for p in out.glob("multirun/*/*") if p.is_dir() and p.name.isdigit())
+    prompts = [yaml.safe_load((j / ".hydra" / "config.yaml").read_text())["prompt"] for j in jobs]
+    assert prompts == ["Joker", "Van Gogh's Starry Night, 1889 (Café)"]
+    assert "source_checkpoint" in (jobs[1] / "result.json").read_text()  # the job ran and failed clearly
+
+
+def test_cli_non_ascii_and_quote_prompts():
+    cfg = _job_cfg("+prompt=Van Gogh's Starry Night", "source_prompt=a photo (of a face), smiling: 日本")
+    assert cfg["prompt"] == "Van Gogh's Starry Night"
+    assert cfg["source_prompt"] == "a photo (of a face), smiling: 日本"
 
 
 def test_group_options_match_the_conf_folder():
@@ -131,6 +228,14 @@ def test_unknown_backbone_name_is_a_config_error():
     _assert_clear_error(
         _cli("backbone.name=foo", "stage=reconstruct"), "'foo'", "nerf, neus, volsdf"
     )
+
+
+def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
+    proc = _cli("+render.new_key=1", "+render.num_sampels=8", "stage=reconstruct", f"output_root={tmp_path}")
+    _assert_clear_error(proc, "render.new_key=1: unknown setting", "did you mean render.num_samples?",
+                        "2 invalid settings")
+    cfg = _job_cfg("+render.ndc_bound=2.0", "+backbone=neus")  # an optional key: Hydra adds it, the schema accepts it
+    assert cfg["render"]["ndc_bound"] == 2.0 and cfg["backbone"]["name"] == "neus"
 
 
 def test_blank_prompt_and_bad_stage_are_clear_errors():

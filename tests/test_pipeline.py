@@ -96,7 +96,7 @@ def test_cache_invalidated_when_data_changes(tmp_path: Path, small_head: Path) -
 
 def _final_state(run_root: Path) -> dict[str, torch.Tensor]:
     ckpt = next(run_root.glob("reconstructions/*/final.ckpt"))
-    return torch.load(ckpt, map_location="cpu", weights_only=False)["state_dict"]
+    return torch.load(ckpt, map_location="cpu", weights_only=True)["state_dict"]
 
 
 def test_killed_run_resumes_to_the_same_result(tmp_path: Path, small_head: Path) -> None:
@@ -112,7 +112,7 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path, small_head: Path)
     while time.time() < deadline and proc.poll() is None:
         found = list(killed.glob("reconstructions/*/last.ckpt"))
         if found:
-            step = torch.load(found[0], map_location="cpu", weights_only=False)["global_step"]
+            step = torch.load(found[0], map_location="cpu", weights_only=True)["global_step"]
             if step >= 15:
                 last = found[0]
                 break
@@ -121,7 +121,7 @@ def test_killed_run_resumes_to_the_same_result(tmp_path: Path, small_head: Path)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     assert not list(killed.glob("reconstructions/*/final.ckpt"))
-    ck = torch.load(last, map_location="cpu", weights_only=False)  # the last complete checkpoint is readable
+    ck = torch.load(last, map_location="cpu", weights_only=True)  # the last complete checkpoint is readable
     assert 15 <= ck["global_step"] < 40
 
     for root in (killed, straight):  # resume the killed run; run the other straight through

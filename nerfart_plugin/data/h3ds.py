@@ -28,6 +28,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from nerfart_plugin.config_types import HoldoutEvery, Resolution
 from nerfart_plugin.data.common import make_scene, require_dir
 from nerfart_plugin.data.images import (
     choose_resolution,
@@ -136,8 +137,8 @@ def read_cameras_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 @register("data", "h3ds")
 def load_h3ds(
     path: Any,
-    resolution: Any = "auto",
-    holdout_every: int = 8,
+    resolution: Resolution = "auto",
+    holdout_every: HoldoutEvery = 8,
     use_masks: bool = True,
     cameras_file: Optional[str] = None,
     **unused: Any,

@@ -23,10 +23,11 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Annotated, Any, Optional
 
 import numpy as np
 
+from nerfart_plugin.config_types import Float, HoldoutEvery, Int, Limits, Resolution
 from nerfart_plugin.data.common import make_scene, require_dir
 from nerfart_plugin.data.images import (
     choose_resolution,
@@ -37,7 +38,7 @@ from nerfart_plugin.data.images import (
     image_size,
 )
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_cameras
-from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.registry import register
 
@@ -144,12 +145,12 @@ def _image_folder(root: Path, factor: Optional[int], notes: list[str]) -> tuple[
 @register("data", "llff")
 def load_llff(
     path: Any,
-    factor: Optional[int] = 8,
-    resolution: Any = "auto",
-    holdout_every: int = 8,
+    factor: Optional[Annotated[Int, Limits(ge=1, le=64)]] = 8,
+    resolution: Resolution = "auto",
+    holdout_every: HoldoutEvery = 8,
     use_masks: bool = True,
-    bd_factor: float = 0.75,
-    capture: Optional[str] = None,
+    bd_factor: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.75,
+    capture: Optional[CaptureType] = None,
     **unused: Any,
 ) -> Scene:
     """Load an LLFF scene.

@@ -55,7 +55,7 @@ def make_default_scene(src: Path, dst: Path, size: int = 256, quality: int = 92)
         with atomic_path(target) as tmp:
             out.save(tmp, format="PNG", optimize=True)
         written.append(target)
-    with np.load(cam_path) as data:
+    with np.load(cam_path, allow_pickle=False) as data:
         arrays = {k: np.asarray(data[k]) for k in data.files if k.startswith(("world_mat_", "scale_mat_"))}
     S = np.diag([sx, sy, 1.0, 1.0])
     for k in list(arrays):

@@ -29,10 +29,11 @@ import logging
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Any, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 
+from nerfart_plugin.config_types import Float, Fraction, HoldoutEvery, Int, Limits, Resolution
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
 from nerfart_plugin.data.images import (
@@ -45,7 +46,7 @@ from nerfart_plugin.data.images import (
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
-from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.registry import register
@@ -361,23 +362,27 @@ def selfie_cache_meta(scene: Scene) -> Optional[dict]:
     return None
 
 
+#: COLMAP camera models of the shared camera (distortion of the radial/OpenCV ones is removed)
+CameraModel = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"]
+
+
 @register("data", "selfie")
 def load_selfie(
     path: Any,
-    resolution: Any = "auto",
-    holdout_every: int = 8,
+    resolution: Resolution = "auto",
+    holdout_every: HoldoutEvery = 8,
     use_masks: bool = True,
-    fps: float = 15.0,
-    max_frames: int = 100,
-    frame_long_side: Optional[int] = 480,
-    matcher: str = "sequential",
+    fps: Annotated[Float, Limits(gt=0.0, le=1000.0)] = 15.0,
+    max_frames: Annotated[Int, Limits(ge=3, le=100_000)] = 100,
+    frame_long_side: Optional[Annotated[Int, Limits(ge=16, le=16384)]] = 480,
+    matcher: Literal["sequential", "exhaustive"] = "sequential",
     camera_model: str = "SIMPLE_RADIAL",
-    min_registered: float = 0.5,
+    min_registered: Fraction = 0.5,
     cache_dir: Optional[Any] = None,
     cache_root: Optional[Any] = None,
-    capture: Optional[str] = None,
-    sfm_seed: int = 0,
-    sfm_threads: int = 1,
+    capture: Optional[CaptureType] = None,
+    sfm_seed: Annotated[Int, Limits(ge=0, le=2**31 - 1)] = 0,
+    sfm_threads: Annotated[Int, Limits(ge=1, le=1024)] = 1,
     **unused: Any,
 ) -> Scene:
     """Load a selfie video / frame folder / COLMAP scene folder (see module doc).

@@ -9,13 +9,14 @@ view directions d [N,3] to colour and geometry. The renderer only calls
 from __future__ import annotations
 
 import math
-from typing import Any, Iterator, Optional
+from typing import Annotated, Any, Iterator, Literal, Optional
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerfart_plugin.config_types import Depth, Fraction, Limits, PositiveFloat, Width
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.encodings import Encoding, TensorVMGridEncoding, build_encoding
 
@@ -121,11 +122,11 @@ class Field(nn.Module):
         self,
         encoding_cfg: Optional[dict] = None,
         bound: float = 1.0,
-        feature_dim: int = 15,
-        hidden_dim: int = 64,
-        n_layers: int = 2,
-        color_hidden_dim: int = 64,
-        color_layers: int = 2,
+        feature_dim: Width = 15,
+        hidden_dim: Width = 64,
+        n_layers: Depth = 2,
+        color_hidden_dim: Width = 64,
+        color_layers: Depth = 2,
         dir_encoding: Optional[dict] = None,
     ) -> None:
         super().__init__()
@@ -215,9 +216,11 @@ class SDFField(Field):
     #: whether ``alpha`` reads ``out["gradient"]`` (then every sample needs its gradient)
     alpha_needs_gradient: bool = False
 
-    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0, radius: Optional[float] = None,
-                 refine_init: bool = True, grad_type: str = "auto", fd_eps: Optional[float] = None,
-                 color_normal: bool = True, grad_samples: float = 1.0, **kw: Any) -> None:
+    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 radius: Optional[Annotated[PositiveFloat, Limits(le=100.0)]] = None, refine_init: bool = True,
+                 grad_type: Literal["auto", "analytic", "finite_difference"] = "auto",
+                 fd_eps: Optional[Annotated[PositiveFloat, Limits(le=1.0)]] = None,
+                 color_normal: bool = True, grad_samples: Fraction = 1.0, **kw: Any) -> None:
         super().__init__(encoding_cfg, bound, **kw)
         if grad_type not in ("auto", "analytic", "finite_difference"):
             raise ConfigError(f"backbone.grad_type={grad_type!r}; use 'auto', 'analytic' or 'finite_difference'.")

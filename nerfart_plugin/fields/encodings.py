@@ -8,13 +8,14 @@ Position encodings take points x [N,3] in world units inside [-bound, bound]^3
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Annotated, Optional, Sequence, Union
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerfart_plugin.config_types import Float, Int, Limits
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.registry import register
 
@@ -46,10 +47,12 @@ class FrequencyEncoding(Encoding):
     ``include_input`` (bool, default True). Output dims ``3*(include_input + 2*n_freqs)``.
     """
 
-    def __init__(self, bound: float = 1.0, n_freqs: int = 10, include_input: bool = True, in_dim: int = 3) -> None:
+    def __init__(self, bound: float = 1.0, n_freqs: Annotated[Int, Limits(ge=0, le=24)] = 10,
+                 include_input: bool = True, in_dim: int = 3) -> None:
         super().__init__()
-        if n_freqs < 0:
-            raise ConfigError(f"encoding.n_freqs must be >= 0, got {n_freqs}; set encoding.n_freqs to e.g. 6 or 10.")
+        if not 0 <= n_freqs <= 24:
+            raise ConfigError(f"encoding.n_freqs={n_freqs}: use 0..24 (2^24 is past float32 precision); "
+                              "e.g. 6 or 10.")
         self.bound = float(bound)
         self.n_input_dims = in_dim
         self.n_freqs = int(n_freqs)
@@ -64,6 +67,12 @@ class FrequencyEncoding(Encoding):
             xb = (x[..., None, :] * self.freqs[:, None].to(x.dtype)).flatten(-2)  # [N, F*3]
             feats += [torch.sin(xb), torch.cos(xb)]
         return torch.cat(feats, dim=-1)
+
+
+#: grid side per level
+GridSide = Annotated[Int, Limits(ge=2, le=2048)]
+#: planes + lines of all levels: 2^27 float32 = 512 MiB (x4 with Adam's moments and the gradient)
+MAX_GRID_PARAMS = 2**27
 
 
 @register("encoding", "grid")
@@ -87,11 +96,11 @@ class TensorVMGridEncoding(Encoding):
     def __init__(
         self,
         bound: float = 1.0,
-        resolution: int | Sequence[int] = 128,
-        n_components: int = 16,
-        out_features: int | None = 32,
-        init_std: float = 0.1,
-        tv_weight: float = 0.0,
+        resolution: Union[GridSide, Annotated[list[GridSide], Limits(min_length=1, max_length=16)]] = 128,
+        n_components: Annotated[Int, Limits(ge=1, le=256)] = 16,
+        out_features: Optional[Annotated[Int, Limits(ge=1, le=4096)]] = 32,
+        init_std: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
+        tv_weight: Annotated[Float, Limits(ge=0.0, le=1e6)] = 0.0,
     ) -> None:
         super().__init__()
         res_list = [int(resolution)] if isinstance(resolution, (int, float)) else [int(r) for r in resolution]
@@ -99,6 +108,13 @@ class TensorVMGridEncoding(Encoding):
             raise ConfigError(
                 f"encoding grid: resolution={resolution!r}, n_components={n_components} invalid; "
                 "use resolution >= 2 (int or list) and n_components >= 1."
+            )
+        n_params = sum(3 * int(n_components) * (r * r + r) for r in res_list)
+        if n_params > MAX_GRID_PARAMS:
+            raise ConfigError(
+                f"encoding grid: resolution={resolution!r} with n_components={n_components} is {n_params:,} "
+                f"parameters ({4 * n_params / 2**30:.1f} GiB, x4 with Adam); at most {MAX_GRID_PARAMS:,}: lower "
+                "encoding.resolution or encoding.n_components."
             )
         self.bound = float(bound)
         self.resolutions = res_list
@@ -151,7 +167,7 @@ class SHEncoding(Encoding):
     Config: ``degree`` (default 4).
     """
 
-    def __init__(self, bound: float = 1.0, degree: int = 4) -> None:
+    def __init__(self, bound: float = 1.0, degree: Annotated[Int, Limits(ge=1, le=4)] = 4) -> None:
         super().__init__()
         if not 1 <= degree <= 4:
             raise ConfigError(f"sh encoding degree must be in 1..4, got {degree}; set dir_encoding.degree=4.")

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerfart_plugin.config_types import Float, Limits
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.base import Field, make_mlp
 from nerfart_plugin.registry import register
@@ -67,9 +68,9 @@ class NeRFField(Field):
         self,
         encoding_cfg: Optional[dict] = None,
         bound: float = 1.0,
-        density_activation: str = "trunc_exp",
-        density_bias: float = -1.0,
-        mesh_level: float = 10.0,
+        density_activation: Literal["trunc_exp", "softplus"] = "trunc_exp",
+        density_bias: Annotated[Float, Limits(ge=-100.0, le=100.0)] = -1.0,
+        mesh_level: Annotated[Float, Limits(gt=0.0, le=1e6)] = 10.0,
         input_xyz: bool = True,
         **kw: Any,
     ) -> None:

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Annotated, Any, Literal, Optional
 
 import torch
 import torch.nn as nn
 from torch import Tensor
 
+from nerfart_plugin.config_types import Float, Int, Limits
 from nerfart_plugin.fields.base import SDFField
 from nerfart_plugin.registry import register
 from nerfart_plugin.errors import ConfigError
@@ -35,9 +36,12 @@ class NeuSField(SDFField):
     ``lr_mlp`` use e.g. 0.2 to keep inv_s from sharpening before the shape forms).
     """
 
-    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0, init_variance: float = 0.3,
-                 inv_s_max: float = 1e5, anneal_steps: int = 0, alpha_mode: str = "gradient",
-                 variance_lr_scale: float = 1.0, **kw: Any) -> None:
+    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 init_variance: Annotated[Float, Limits(ge=-10.0, le=10.0)] = 0.3,
+                 inv_s_max: Annotated[Float, Limits(gt=1.0, le=1e9)] = 1e5,
+                 anneal_steps: Annotated[Int, Limits(ge=0, le=10**9)] = 0,
+                 alpha_mode: Literal["gradient", "sections"] = "gradient",
+                 variance_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = 1.0, **kw: Any) -> None:
         if alpha_mode not in ("gradient", "sections"):
             raise ConfigError(f"backbone neus: alpha_mode={alpha_mode!r}; use 'gradient' or 'sections'.")
         self.alpha_needs_gradient = alpha_mode == "gradient"

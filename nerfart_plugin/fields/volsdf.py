@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import math
-from typing import Any, Optional
+from typing import Annotated, Any, Optional
 
 import torch
 import torch.nn as nn
 from torch import Tensor
 
+from nerfart_plugin.config_types import Float, Limits
+from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.base import SDFField
 from nerfart_plugin.registry import register
 from nerfart_plugin.rendering.volume import volsdf_density
@@ -31,7 +33,12 @@ class VolSDFField(SDFField):
     """
 
     def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
-                 beta_init: float = 0.1, beta_min: float = 1e-4, beta_log_scale: float = 1.0, **kw: Any) -> None:
+                 beta_init: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
+                 beta_min: Annotated[Float, Limits(gt=0.0, le=1.0)] = 1e-4,
+                 beta_log_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = 1.0, **kw: Any) -> None:
+        if not float(beta_init) > float(beta_min):
+            raise ConfigError(f"backbone.beta_init={beta_init} must exceed backbone.beta_min={beta_min} "
+                              "(beta starts at beta_init and never goes below beta_min).")
         super().__init__(encoding_cfg, bound, **kw)
         self.beta_min = float(beta_min)
         self.beta_log_scale = float(beta_log_scale)

@@ -31,7 +31,7 @@ import functools
 import logging
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import kornia
 import torch
@@ -128,6 +128,7 @@ def _is_torchscript_archive(path: str) -> bool:
 
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
+Precision = Literal["auto", "fp32", "bf16", "fp16"]
 
 
 @functools.lru_cache(maxsize=1)
@@ -180,9 +181,9 @@ class CLIPGuidance(Guidance):
         allow_random_weights: bool = False,
         allow_download: bool | None = None,
         quick_gelu: bool | None = None,
-        resize_mode: str = "squash",
+        resize_mode: Literal["squash", "shortest"] = "squash",
         model_overrides: dict[str, Any] | None = None,
-        precision: str = "auto",
+        precision: Precision = "auto",
         device: str | torch.device | None = None,
     ) -> None:
         super().__init__()

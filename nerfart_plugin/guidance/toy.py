@@ -29,12 +29,14 @@ from __future__ import annotations
 
 import hashlib
 import re
+from typing import Annotated
 
 import kornia
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerfart_plugin.config_types import Float, Int, Limits
 from nerfart_plugin.guidance.base import Guidance
 from nerfart_plugin.registry import register
 
@@ -84,7 +86,9 @@ class ToyGuidance(Guidance):
     name = "toy"
     is_real = False
 
-    def __init__(self, num_structure: int = 8, structure_scale: float = 0.5, input_size: int = 64) -> None:
+    def __init__(self, num_structure: Annotated[Int, Limits(ge=0, le=1024)] = 8,
+                 structure_scale: Annotated[Float, Limits(ge=0.0, le=100.0)] = 0.5,
+                 input_size: Annotated[Int, Limits(ge=8, le=1024)] = 64) -> None:
         super().__init__()
         self.num_structure = int(num_structure)
         self.structure_scale = float(structure_scale)

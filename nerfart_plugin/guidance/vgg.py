@@ -23,12 +23,13 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Annotated, Literal, Optional, Sequence
 
 import kornia
 import torch
 from torch import Tensor, nn
 
+from nerfart_plugin.config_types import Int, Limits
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 
@@ -48,6 +49,8 @@ for _b, _n in enumerate(_blocks, start=1):
 del _blocks, _idx, _b, _n, _c
 
 DEFAULT_LAYERS: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3")
+#: a layer name of :data:`VGG16_LAYERS` (the type of ``guidance.vgg.layers`` items)
+VGGLayer = Literal[tuple(VGG16_LAYERS)]  # type: ignore[valid-type]
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
@@ -108,10 +111,10 @@ class Perceptual(nn.Module):
     def __init__(
         self,
         weights: str | None = "DEFAULT",
-        layers: Sequence[str] = DEFAULT_LAYERS,
+        layers: Annotated[Sequence[VGGLayer], Limits(min_length=1)] = DEFAULT_LAYERS,
         allow_random_weights: bool = False,
         allow_download: bool | None = None,
-        max_size: int | None = None,
+        max_size: Optional[Annotated[Int, Limits(ge=16, le=8192)]] = None,
     ) -> None:
         super().__init__()
         from torchvision.models.vgg import cfgs, make_layers
@@ -200,8 +203,10 @@ class EdgePerceptual(nn.Module):
     name = "edges"
     is_real = False
 
-    def __init__(self, num_scales: int = 3) -> None:
+    def __init__(self, num_scales: Annotated[Int, Limits(ge=1, le=8)] = 3) -> None:
         super().__init__()
+        if not 1 <= int(num_scales) <= 8:
+            raise ConfigError(f"guidance.edges.num_scales={num_scales}: use 1..8 (each halves the image).")
         self.num_scales = int(num_scales)
         self.layers = [f"{kind}@1/{2**s}" for s in range(self.num_scales) for kind in ("rgb", "sobel")]
 

@@ -79,9 +79,28 @@ def steps_loader() -> torch.utils.data.DataLoader:
 
 
 class RenderSystem(L.LightningModule):
-    """Base LightningModule holding a renderer built from config."""
+    """Base LightningModule holding a renderer built from config.
+
+    Its checkpoints record the model they belong to (``checkpoint["nerfart"]``, see
+    :func:`nerfart_plugin.checkpoints.checkpoint_meta`), so that a checkpoint that does not
+    fit a run is named with what differs.
+    """
 
     renderer: VolumeRenderer
+    #: stage name recorded in checkpoints
+    stage: str = "render"
+    model_meta: dict[str, Any] = {}
+
+    def remember_model(self, backbone_cfg: dict, encoding_cfg: dict, setup: SceneSetup) -> None:
+        """Record the model settings for :meth:`on_save_checkpoint` (plain data)."""
+        from nerfart_plugin.checkpoints import checkpoint_meta
+
+        self.model_meta = checkpoint_meta(self.stage, backbone_cfg, encoding_cfg, setup)
+
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        from nerfart_plugin.checkpoints import META_KEY
+
+        checkpoint[META_KEY] = dict(self.model_meta)
 
     @property
     def field(self):

@@ -1,9 +1,11 @@
-"""Callbacks shared by both stages: atomic checkpoints and a finite-value guard."""
+"""Callbacks shared by both stages: atomic checkpoints, Ctrl-C at a step boundary, a finite-value guard."""
 
 from __future__ import annotations
 
 import logging
 import os
+import signal
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -16,6 +18,18 @@ from nerfart_plugin.utils.io import atomic_path
 log = logging.getLogger(__name__)
 
 LAST = "last.ckpt"
+
+
+class _NoSaveDefaultNote(logging.Filter):
+    """Drop Lightning's "`weights_only` was not set, defaulting to `False`" note, logged at every
+    ``save_checkpoint``: there the flag means "save only the weights" (we save the full, resumable state
+    on purpose); it has nothing to do with how checkpoints are loaded (always ``weights_only=True``)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "`weights_only` was not set" not in record.getMessage()
+
+
+logging.getLogger("lightning.pytorch.trainer.connectors.checkpoint_connector").addFilter(_NoSaveDefaultNote())
 
 
 class AtomicCheckpoint(L.Callback):
@@ -36,10 +50,10 @@ class AtomicCheckpoint(L.Callback):
         path = self.dirpath / LAST
         if trainer.world_size == 1:
             with atomic_path(path) as tmp:
-                trainer.save_checkpoint(tmp, weights_only=False)  # full state: resumable
+                trainer.save_checkpoint(tmp)  # full state (optimizer, loops): resumable
         else:  # DDP: every rank joins save_checkpoint (rank 0 writes), rank 0 renames
             tmp = self.dirpath / f".{LAST}.step{trainer.global_step}.tmp"
-            trainer.save_checkpoint(tmp, weights_only=False)  # full state: resumable
+            trainer.save_checkpoint(tmp)  # full state (optimizer, loops): resumable
             if trainer.is_global_zero:
                 os.replace(tmp, path)
             trainer.strategy.barrier("atomic_checkpoint")
@@ -55,6 +69,54 @@ class AtomicCheckpoint(L.Callback):
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if trainer.global_step != self._last_saved and not trainer.interrupted:
             self.save(trainer)
+
+
+class GracefulInterrupt(L.Callback):
+    """Ctrl-C (SIGINT) during training stops at the end of the current step with ``last.ckpt`` written.
+
+    Lightning turns a KeyboardInterrupt inside ``fit`` into an interrupted run (and, in
+    2.6, ``sys.exit(1)``), mid-step. Instead the first Ctrl-C only sets :attr:`requested`;
+    after the step in progress the checkpoint is written and training stops, so the run
+    resumes exactly where it stopped. A second Ctrl-C stops at once (the last periodic
+    checkpoint is kept). The pipeline then reports the interruption (exit code 130).
+    """
+
+    def __init__(self, checkpoint: AtomicCheckpoint) -> None:
+        self.checkpoint = checkpoint
+        self.requested = False
+        self.stopped_at: int | None = None
+        self._previous: Any = None
+
+    def _on_sigint(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        log.warning("Ctrl-C: stopping after this step with a checkpoint (press Ctrl-C again to stop at once)")
+
+    def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._on_sigint)
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
+        requested = self.requested
+        if trainer.world_size > 1:  # every rank stops at the same step
+            requested = trainer.strategy.reduce_boolean_decision(requested, all=False)
+        if requested and not trainer.should_stop:
+            if self.checkpoint._last_saved != trainer.global_step:
+                self.checkpoint.save(trainer)
+            self.stopped_at = trainer.global_step
+            trainer.should_stop = True
+
+    def _restore(self) -> None:
+        if self._previous is not None and threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+    def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
+        self._restore()
+
+    def on_exception(self, trainer: L.Trainer, pl_module: L.LightningModule, exception: BaseException) -> None:
+        self._restore()
 
 
 class FiniteGradientGuard(L.Callback):

@@ -38,13 +38,18 @@ class ReconstructionSystem(RenderSystem):
         out_dir: where validation images go (None: not saved).
     """
 
+    stage = "reconstruct"
+
     def __init__(self, cfg: dict, backbone_cfg: dict, encoding_cfg: dict, render_cfg: dict, setup: SceneSetup,
                  train_rays: Optional[dict] = None, seed: int = 0, out_dir: Optional[str] = None) -> None:
         super().__init__()
-        self.save_hyperparameters(ignore=["train_rays"])
+        # hyper-parameters as plain data only (checkpoints are read with weights_only=True)
+        self.save_hyperparameters(ignore=["train_rays", "setup"])
         self.cfg = dict(cfg)
         self.setup_info = setup if isinstance(setup, SceneSetup) else SceneSetup(**setup)
+        self.hparams["setup"] = self.setup_info.to_dict()
         self.renderer = build_renderer(backbone_cfg, encoding_cfg, render_cfg, self.setup_info)
+        self.remember_model(backbone_cfg, encoding_cfg, self.setup_info)
         self.train_rays = train_rays
         self.seed = int(seed)
         self.out_dir = Path(out_dir) if out_dir else None

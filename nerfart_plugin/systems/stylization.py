@@ -99,6 +99,8 @@ class StylizationSystem(RenderSystem):
         raw_prompt: the prompt as typed (before augmentation), for the negatives' exclusion rules.
     """
 
+    stage = "stylize"
+
     def __init__(self, cfg: dict, experiment: dict, backbone_cfg: dict, encoding_cfg: dict, render_cfg: dict,
                  setup: SceneSetup, source_state: dict, views: list[dict], guidance: Any, perceptual: Any,
                  prompt: str, source_prompt: str, negatives: list, seed: int = 0,
@@ -108,6 +110,7 @@ class StylizationSystem(RenderSystem):
         self.cfg, self.exp = dict(cfg), dict(experiment)
         self.setup_info = setup
         self.renderer = build_renderer(backbone_cfg, encoding_cfg, render_cfg, setup)
+        self.remember_model(backbone_cfg, encoding_cfg, setup)
         self.renderer.load_state_dict(source_state)
         source = build_renderer(backbone_cfg, encoding_cfg, render_cfg, setup)
         source.load_state_dict(source_state)
@@ -133,7 +136,8 @@ class StylizationSystem(RenderSystem):
         self.lambdas = {
             "dir": float(self.exp.get("lambda_dir", 1.0)),
             "global": float(self.exp.get("lambda_global", 0.2)),
-            "local": float(self.exp.get("lambda_local", 0.1)),
+            # stylize.local_patches=0: no local patches, so no local term
+            "local": float(self.exp.get("lambda_local", 0.1)) if int(self.cfg.get("local_patches", 4)) > 0 else 0.0,
             "perceptual": float(self.exp.get("lambda_perceptual", 2.0)),
             "reg": float(self.exp.get("lambda_reg", 0.1)),
             "eikonal": (float(self.exp.get("lambda_eikonal", 0.1))

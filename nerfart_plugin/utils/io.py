@@ -10,6 +10,7 @@ import contextlib
 import hashlib
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Any, Iterator
@@ -65,3 +66,43 @@ def hash_files(paths: list[Path], extra: str = "") -> str:
                 h.update(block)
     h.update(extra.encode())
     return h.hexdigest()
+
+
+#: free disk space an output root needs (checkpoints, renders, meshes of a small run)
+MIN_FREE_BYTES = 64 * 2**20
+
+
+def check_writable_dir(path: str | os.PathLike, key: str = "output_root") -> Path:
+    """Create folder ``path`` if needed and check that files can be written there, with free space left.
+
+    Returns:
+        the folder.
+    Raises:
+        ConfigError: naming ``key``, the path and the reason (a file in the way, read-only, no permission,
+        a missing parent that cannot be created, a full disk).
+    """
+    from nerfart_plugin.errors import ConfigError
+
+    folder = Path(path).expanduser()
+    blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+    if blocker is not None:
+        raise ConfigError(f"{key}={path}: {blocker} is a file, so no folder can be made there; choose another "
+                          f"{key} (a folder) or move that file.")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=folder)
+        try:
+            os.write(fd, b"nerfart")
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except OSError as exc:
+        raise ConfigError(f"{key}={path}: cannot write into {folder} ({exc.strerror or exc}); choose a folder you "
+                          f"can write, e.g. {key}=$HOME/nerfart_outputs.") from exc
+    free = shutil.disk_usage(folder).free
+    if free < MIN_FREE_BYTES:
+        raise ConfigError(f"{key}={path}: only {free / 2**20:.0f} MiB free on the disk of {folder}; a run needs at "
+                          f"least {MIN_FREE_BYTES / 2**20:.0f} MiB for checkpoints, renders and meshes. Free some "
+                          f"space or choose another {key}.")
+    return folder

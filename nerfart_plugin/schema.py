@@ -1,0 +1,726 @@
+"""Typed configuration: one pydantic model per config section, checked before any work.
+
+:func:`validate_config` checks a composed config (a plain dict) before any data,
+weights or training is touched, and raises ONE :class:`~nerfart_plugin.errors.ConfigError`
+listing every violation as ``key=value: what is allowed (how to turn it off)``.
+
+* The sections with fixed keys have a model here: the run keys (:class:`RunConfig`),
+  ``render`` (+ ``render.occupancy``), ``reconstruct``, ``stylize``, ``export``,
+  ``trainer`` and ``experiment``. Each field has its type, its default (exactly the
+  value in ``conf/``: ``tests/test_config_validation.py`` asserts it), its range and
+  a description (units, what 0 / null means). Optional keys that ``conf/`` does not
+  set default to null (add them with ``+render.ndc_bound=2.0``).
+* The component sections (``data``, ``backbone``, ``encoding``, ``guidance``) are
+  validated from the constructor of the component they name (registry): the type
+  hints of its signature (:mod:`nerfart_plugin.config_types` carries the ranges) and
+  its parameter names (an unknown key is reported with the closest valid one), so a
+  registered custom component is checked the same way.
+
+Unknown or misspelled keys are refused (``extra="forbid"``) with the closest valid
+key (difflib). Numbers must be finite; booleans are not numbers.
+"""
+
+from __future__ import annotations
+
+import collections.abc
+import difflib
+import functools
+import inspect
+import math
+import types
+import typing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Callable, Literal, Optional, Union
+
+import annotated_types as at
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, create_model, field_validator
+from pydantic.fields import FieldInfo
+
+from nerfart_plugin.config_types import Float, Fraction, Int, Seed, Setting, allowed_text, off_hint
+from nerfart_plugin.errors import ConfigError
+
+__all__ = [
+    "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
+    "TrainerConfig", "ExperimentConfig", "SECTIONS", "Issue", "validate_config", "component_model",
+]
+
+#: samples (rays x samples per ray) of one training step with grad: far beyond any GPU's memory above this
+MAX_GRAD_SAMPLES = 2**24
+#: samples of one no-grad chunk
+MAX_NOGRAD_SAMPLES = 2**26
+
+_MODEL_CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True,
+                           protected_namespaces=(), validate_default=False)
+
+
+class Section(BaseModel):
+    """Base of every section: unknown keys refused, numbers finite."""
+
+    model_config = _MODEL_CONFIG
+
+
+Color = Annotated[list[Annotated[Float, Field(ge=0.0, le=1.0)]], Field(min_length=3, max_length=3)]
+AutoBool = Union[Literal["auto"], bool]
+_NO_STEPS = "to skip this stage pick another one: stage=reconstruct | stylize | all | export"
+_CHUNK_OFF = "there is no 'no chunking': a larger chunk renders more rays at once and needs more memory"
+
+
+# ---------------------------------------------------------------------- the sections with fixed keys
+class OccupancyConfig(Section):
+    """``render.occupancy``: the occupancy grid for empty-space skipping."""
+
+    enabled: AutoBool = Setting("auto", description="auto: on, except for forward-facing (NDC) captures | true | false")
+    resolution: Int = Setting(64, ge=1, le=256, description="cells per side (shrunk to what the images resolve)",
+                              off="render.occupancy.enabled=false turns the grid off")
+    update_every: Int = Setting(16, ge=1, le=1_000_000, description="training steps between grid refreshes")
+    threshold: Float = Setting(0.01, gt=0.0, le=1.0, description="opacity of a cell above which it counts as occupied",
+                               off="render.occupancy.enabled=false turns the grid off")
+    warmup_steps: Int = Setting(64, ge=0, le=10**9, description="steps during which every cell is re-evaluated")
+
+
+class RenderConfig(Section):
+    """``render``: ray sampling and compositing, shared by every stage."""
+
+    num_samples: Int = Setting(32, ge=1, le=1024, description="samples per ray")
+    sdf_color_normal: bool = Setting(False, description="SDF backbones: normals into the colour net (the papers: true)")
+    sdf_grad_samples: Fraction = Setting(0.125, description="SDF backbones: fraction of samples whose gradient "
+                                         "(eikonal) is computed while training",
+                                         off="reconstruct.lambda_eikonal=0 turns the eikonal term off")
+    neus_alpha_mode: Literal["gradient", "sections"] = Setting("sections", description="NeuS opacity estimate")
+    chunk: Int = Setting(4096, ge=1, le=2**20, description="rays per chunk of no-grad full-view rendering",
+                         off=_CHUNK_OFF)
+    background_color: Optional[Color] = Setting([1.0, 1.0, 1.0], description="[r, g, b] in [0, 1] behind the field "
+                                                "when no background model is used; null: no compositing")
+    background_model: AutoBool = Setting("auto", description="learned environment map: auto (unbounded captures "
+                                         "without masks) | true | false")
+    ndc_bound: Optional[Float] = Setting(None, gt=0.0, le=100.0, description="half side of the field box of "
+                                         "forward-facing (NDC) captures; null: 1.5")
+    occupancy: OccupancyConfig = Field(default_factory=OccupancyConfig)
+
+
+class ReconstructConfig(Section):
+    """``reconstruct``: stage 1, fitting the field to the photos."""
+
+    steps: Int = Setting(6000, ge=1, le=10**9, description="optimizer steps", off=_NO_STEPS)
+    batch_rays: Int = Setting(512, ge=1, le=2**18, description="random training rays per step")
+    lr: Float = Setting(0.01, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
+    lr_mlp: Float = Setting(0.003, gt=0.0, le=10.0, description="Adam rate of the MLPs (times encoding.mlp_lr_scale)")
+    lambda_rgb: Float = Setting(1.0, gt=0.0, le=1e6, description="weight of the photo loss (Eq. 2); it is what "
+                                "reconstructs the scene, so it cannot be 0")
+    lambda_eikonal: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the eikonal term (SDF); 0: off")
+    lambda_mask: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the mask BCE (scenes with mattes); 0: off")
+    val_every: Int = Setting(1000, ge=0, le=10**9, description="steps between validations; 0: no validation")
+    checkpoint_every: Int = Setting(100, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
+                                    off="checkpoints cannot be turned off (last.ckpt is what an interrupted run "
+                                        "resumes from); a larger value writes them less often")
+    val_views: Int = Setting(2, ge=0, le=100_000, description="held-out views rendered at validation; 0: all")
+
+
+class StylizeConfig(Section):
+    """``stylize``: stage 2, the text-driven fine-tuning (Eq. 8)."""
+
+    steps: Int = Setting(100, ge=1, le=10**9, description="optimizer steps (one view each)", off=_NO_STEPS)
+    lr: Float = Setting(0.002, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
+    lr_mlp: Float = Setting(0.0005, gt=0.0, le=10.0, description="Adam rate of the MLPs")
+    resolution: Int = Setting(128, ge=8, le=4096, description="long side (pixels) of the view the CLIP losses see")
+    patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)")
+    num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing; null: "
+                                         "render.num_samples")
+    chunk: Int = Setting(8192, ge=1, le=2**20, description="rays per no-grad chunk", off=_CHUNK_OFF)
+    freeze_geometry: bool = Setting(False, description="keep the shape, stylize the colour only")
+    num_negatives: Int = Setting(64, ge=1, le=100_000, description="negative prompts per step (Eq. 5)",
+                                 off="experiment.lambda_global=0 experiment.lambda_local=0 turn the contrastive "
+                                     "terms off (or experiment=no_contrastive)")
+    negative_threshold: Float = Setting(0.85, ge=-1.0, le=1.0, description="negatives whose text cosine to the "
+                                        "target exceeds this are excluded")
+    tau: Float = Setting(0.07, gt=0.0, le=100.0, description="temperature of the contrastive losses (Eq. 5)",
+                         off="experiment.lambda_global=0 experiment.lambda_local=0 turn the contrastive terms off")
+    local_patches: Int = Setting(4, ge=0, le=1024, description="local patches per step (Eq. 6); 0: no local term")
+    local_patch_frac: Fraction = Setting(0.1, description="local patch side as a fraction of the view side",
+                                         off="stylize.local_patches=0 or experiment.lambda_local=0 turns the local "
+                                             "term off")
+    render_every: Int = Setting(25, ge=0, le=10**9, description="steps between saved source|stylized renders; 0: none")
+    checkpoint_every: Int = Setting(10, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
+                                    off="checkpoints cannot be turned off (last.ckpt is what an interrupted run "
+                                        "resumes from); a larger value writes them less often")
+    video_frames: Int = Setting(24, ge=0, le=100_000, description="frames of the orbit video; 0: no video")
+    video_fps: Int = Setting(12, ge=1, le=240, description="frames per second of the video",
+                             off="stylize.video_frames=0 turns the video off")
+    lambda_eikonal: Optional[Float] = Setting(None, ge=0.0, le=1e6, description="eikonal weight while stylizing "
+                                              "SDF backbones; null: 0.1")
+
+
+MeshFormat = Literal["ply", "obj", "glb"]
+
+
+class ExportConfig(Section):
+    """``export``: meshes by marching cubes."""
+
+    enabled: bool = Setting(True, description="write meshes (source, stylized, displacement)")
+    resolution: Int = Setting(128, ge=8, le=1024, description="marching-cubes grid cells per side",
+                              off="export.enabled=false turns mesh export off")
+    level: Optional[Float] = Setting(None, description="iso-level; null: the backbone's (0 for SDF, "
+                                     "backbone.mesh_level for nerf)")
+    chunk: Int = Setting(65536, ge=1, le=2**24, description="points per field call", off=_CHUNK_OFF)
+    remove_floaters: bool = Setting(True, description="drop small disconnected components")
+    formats: Annotated[list[MeshFormat], Field(min_length=1)] = Setting(
+        ["ply"], description="mesh files to write", off="export.enabled=false turns mesh export off")
+
+
+Precision = Literal["32-true", "32", 32, "16-mixed", "16", 16, "bf16-mixed", "bf16", "16-true", "bf16-true",
+                    "64-true", "64", 64]
+Devices = Union[Literal["auto", -1], Annotated[Int, Field(ge=1, le=4096)],
+                Annotated[list[Annotated[Int, Field(ge=0, le=4096)]], Field(min_length=1)]]
+
+
+class TrainerConfig(Section):
+    """``trainer``: Lightning Trainer options."""
+
+    log_every_n_steps: Int = Setting(10, ge=1, le=10**9, description="steps between logged metrics")
+    precision: Precision = Setting("32-true", description="Lightning precision")
+    strategy: str = Setting("auto", min_length=1, description="Lightning strategy: auto (one device) | ddp | ...",
+                            allowed="a Lightning strategy: auto, ddp, ddp_spawn, fsdp, deepspeed, ... "
+                                    "(lightning.pytorch.strategies.StrategyRegistry)")
+    devices: Devices = Setting(1, description="devices per node: N | auto | -1 (all) | [ids]",
+                               off="device=cpu runs on the CPU")
+    num_nodes: Int = Setting(1, ge=1, le=100_000, description="nodes for multi-node DDP")
+
+    @field_validator("strategy")
+    @classmethod
+    def _lightning_strategy(cls, value: str) -> str:
+        if value.lower() == "auto":
+            return value
+        from lightning.pytorch.strategies import StrategyRegistry
+
+        if value.lower() not in StrategyRegistry.available_strategies():
+            raise ValueError(f"unknown Lightning strategy {value!r}")
+        return value
+
+
+class ExperimentConfig(Section):
+    """``experiment``: the weights of Eq. 8 (``conf/experiment/full.yaml``); 0 turns a term off."""
+
+    name: str = Setting("full", min_length=1, description="name of the experiment (for the records)")
+    directional: Literal["relative", "absolute"] = Setting("relative", description="Eq. 4 (relative, NeRF-Art) or "
+                                                           "Eq. 3 (absolute, CLIP-NeRF style)")
+    lambda_dir: Float = Setting(1.0, ge=0.0, le=1e4, description="weight of the directional CLIP loss; 0: off")
+    lambda_global: Float = Setting(0.2, ge=0.0, le=1e4, description="weight of the global contrastive loss; 0: off")
+    lambda_local: Float = Setting(0.1, ge=0.0, le=1e4, description="weight of the local contrastive loss; 0: off")
+    lambda_perceptual: Float = Setting(2.0, ge=0.0, le=1e4, description="weight of the VGG perceptual loss; 0: off")
+    lambda_reg: Float = Setting(0.1, ge=0.0, le=1e4, description="weight of the weight regularization; 0: off")
+
+
+def _prompt_text(value: Any) -> Any:
+    """A prompt is text: ``+prompt=1984`` reaches here as the int 1984 from Hydra's parser."""
+    return str(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else value
+
+
+PromptText = Annotated[str, BeforeValidator(_prompt_text), Field(min_length=1)]
+PathText = Union[str, Path]
+
+
+class RunConfig(Section):
+    """The top-level keys of ``conf/config.yaml``, with the sections as nested models."""
+
+    stage: Literal["reconstruct", "stylize", "all", "export"] = Setting("all", description="which stages to run")
+    prompt: Optional[PromptText] = Setting(None, description="the style text; required for stylize/all")
+    source_prompt: PromptText = Setting("auto", description="source text of the directional loss; auto: from "
+                                        "the capture type")
+    prompt_augment: bool = Setting(True, description="expand known painter/style names to the paper's prompts")
+    seed: Seed = Setting(0, description="seed of every random choice")
+    device: str = Setting("auto", pattern=r"^(auto|cpu|mps|cuda(:\d+)?)$", description="the compute device",
+                          allowed="one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), mps")
+    output_root: PathText = Setting("outputs", description="where runs, caches and Hydra logs go")
+    resume: bool = Setting(True, description="resume an interrupted run; false: start over (the old folder is kept)")
+    source_checkpoint: Optional[PathText] = Setting(None, description="a reconstruction checkpoint to stylize/export")
+    objective: str = Setting("auto", pattern=r"^[A-Za-z_][\w.]*$", description="metric a sweep maximizes",
+                             allowed="auto or a dotted results key such as stylization.clip_score")
+    lock_timeout: Optional[Float] = Setting(None, ge=0.0, le=1e7, description="seconds to wait for a run folder "
+                                            "that another process holds; 0: stop at once; null: wait until it ends")
+    render: RenderConfig = Field(default_factory=RenderConfig)
+    reconstruct: ReconstructConfig = Field(default_factory=ReconstructConfig)
+    stylize: StylizeConfig = Field(default_factory=StylizeConfig)
+    export: ExportConfig = Field(default_factory=ExportConfig)
+    trainer: TrainerConfig = Field(default_factory=TrainerConfig)
+    experiment: ExperimentConfig = Field(default_factory=ExperimentConfig)
+    # component sections: checked against the component they name (see validate_components)
+    data: dict[str, Any] = Field(default_factory=lambda: {"kind": "h3ds"})
+    backbone: dict[str, Any] = Field(default_factory=lambda: {"name": "volsdf"})
+    encoding: dict[str, Any] = Field(default_factory=lambda: {"name": "grid"})
+    guidance: dict[str, Any] = Field(default_factory=lambda: {"name": "clip"})
+
+
+#: section name -> model, for the sections with fixed keys
+SECTIONS: dict[str, type[Section]] = {
+    "render": RenderConfig, "reconstruct": ReconstructConfig, "stylize": StylizeConfig, "export": ExportConfig,
+    "trainer": TrainerConfig, "experiment": ExperimentConfig,
+}
+
+
+# ---------------------------------------------------------------------- violations -> one ConfigError
+@dataclass
+class Issue:
+    """One violation: ``key=value: allowed (off)``."""
+
+    key: str
+    value: Any
+    allowed: str
+    off: Optional[str] = None
+
+    def __str__(self) -> str:
+        text = f"{self.key}={show(self.value)}: {self.allowed}"
+        return f"{text} ({self.off})" if self.off and _zero_like(self.value) else text
+
+
+def show(value: Any) -> str:
+    """A value as a user would type it on the command line."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(show(v) for v in value) + "]"
+    if isinstance(value, float):
+        return repr(value)
+    if isinstance(value, (int, Path)):
+        return str(value)
+    text = repr(value)
+    return text if len(text) <= 80 else text[:77] + "..."
+
+
+def _zero_like(value: Any) -> bool:
+    """0, null, false, empty: the values a user types to mean "off"."""
+    if value is None or value is False or (isinstance(value, (list, tuple, dict)) and not value):
+        return True
+    if isinstance(value, (int, float)):
+        return value == 0 or (isinstance(value, float) and math.isnan(value))
+    return isinstance(value, str) and value.strip().lower() in ("", "0", "none", "null", "off", "false", "no")
+
+
+def raise_issues(issues: list[Issue]) -> None:
+    """Raise one ConfigError listing every issue (nothing if there is none)."""
+    if not issues:
+        return
+    seen: dict[str, Issue] = {}
+    for issue in issues:
+        seen.setdefault(issue.key, issue)
+    lines = [str(i) for i in seen.values()]
+    if len(lines) == 1:
+        raise ConfigError(lines[0])
+    raise ConfigError(f"{len(lines)} invalid settings:\n  " + "\n  ".join(lines))
+
+
+def _number(x: Any) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def _bounds(meta: list[Any]) -> str:
+    """' in [1, 4096]', ' > 0', ... from annotated_types constraints."""
+    lo = hi = None
+    for m in meta:
+        if isinstance(m, at.Ge):
+            lo = f"[{_number(m.ge)}"
+        elif isinstance(m, at.Gt):
+            lo = f"({_number(m.gt)}"
+        elif isinstance(m, at.Le):
+            hi = f"{_number(m.le)}]"
+        elif isinstance(m, at.Lt):
+            hi = f"{_number(m.lt)})"
+    if lo and hi:
+        return f" in {lo}, {hi}"
+    if lo:
+        return (" >= " if lo[0] == "[" else " > ") + lo[1:]
+    if hi:
+        return (" <= " if hi[-1] == "]" else " < ") + hi[:-1]
+    return ""
+
+
+def _flat_meta(meta: list[Any]) -> list[Any]:
+    out: list[Any] = []
+    for m in meta:
+        out.extend(m.metadata if isinstance(m, FieldInfo) else [m])
+    return out
+
+
+def _choice(value: Any) -> str:
+    """A choice as typed on the command line (text unquoted)."""
+    return value if isinstance(value, str) else show(value)
+
+
+def _choices(tp: Any) -> Optional[list[Any]]:
+    """The values a Literal / bool allows (None for other types)."""
+    if typing.get_origin(tp) is Literal:
+        return list(typing.get_args(tp))
+    return [True, False] if tp is bool else None
+
+
+def describe(tp: Any, meta: Optional[list[Any]] = None) -> str:
+    """What a type annotation (with its constraints) allows, in words."""
+    meta = _flat_meta(list(meta or []))
+    origin, args = typing.get_origin(tp), typing.get_args(tp)
+    if origin is Annotated:
+        return describe(args[0], [*args[1:], *meta])
+    if origin in (Union, types.UnionType):
+        rest = [a for a in args if a is not type(None)]
+        values = [v for a in rest for v in (_choices(a) or [])]
+        others = [describe(a, meta if len(rest) == 1 else None) for a in rest if _choices(a) is None]
+        choice = "true or false" if values == [True, False] else "one of " + ", ".join(_choice(v) for v in values)
+        parts = ([choice] if values else []) + others
+        return ", or ".join(parts) + (", or null" if len(rest) < len(args) else "")
+    choices = _choices(tp)
+    if choices is not None:
+        return "true or false" if tp is bool else "one of " + ", ".join(_choice(a) for a in choices)
+    if tp is int:
+        return "an integer" + _bounds(meta)
+    if tp is float:
+        return "a number" + _bounds(meta)
+    if tp is str:
+        return "non-empty text" if _min_len(meta) else "text"
+    if tp is Path:
+        return "a path"
+    if origin in (list, tuple, collections.abc.Sequence) or tp in (list, tuple):
+        n_lo, n_hi = _min_len(meta), _max_len(meta)
+        size = f"{n_lo} values" if n_lo is not None and n_lo == n_hi else "at least one value" if n_lo else "values"
+        return f"a list of {size}" + (f", each {describe(args[0])}" if args else "")
+    if origin in (dict, collections.abc.Mapping) or tp is dict:
+        return "a mapping of settings"
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return "a section of settings"
+    if tp is Any:
+        return "any value"
+    return f"a {getattr(tp, '__name__', str(tp))}"
+
+
+def _min_len(meta: list[Any]) -> Optional[int]:
+    return next((m.min_length for m in meta if isinstance(m, at.MinLen)), None)
+
+
+def _max_len(meta: list[Any]) -> Optional[int]:
+    return next((m.max_length for m in meta if isinstance(m, at.MaxLen)), None)
+
+
+def _model_in(tp: Any) -> Optional[type[BaseModel]]:
+    """The BaseModel subclass an annotation is (or is optionally), else None."""
+    if isinstance(tp, type) and issubclass(tp, BaseModel):
+        return tp
+    if typing.get_origin(tp) in (Union, types.UnionType, Annotated):
+        for a in typing.get_args(tp):
+            m = _model_in(a)
+            if m is not None:
+                return m
+    return None
+
+
+def suggest(key: str, valid: list[str]) -> str:
+    """'; did you mean x?' for the closest valid key, or ''."""
+    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
+def unknown_key(key: str, value: Any, valid: list[str]) -> Issue:
+    """An Issue for a key that no section or component accepts, with the closest valid one
+    (``valid``: dotted keys of the same section; names are compared without the section prefix)."""
+    prefix, _, name = key.rpartition(".")
+    lead = f"{prefix}." if prefix else ""
+    names = [v[len(lead):] if v.startswith(lead) else v for v in valid]
+    close = difflib.get_close_matches(name, names, n=1, cutoff=0.6)
+    hint = f"; did you mean {lead}{close[0]}?" if close else ""
+    return Issue(key, value, f"unknown setting{hint} (valid: {', '.join(valid)})")
+
+
+def issues_from(exc: ValidationError, model: type[BaseModel], data: Any, prefix: str = "") -> list[Issue]:
+    """One Issue per invalid key of a pydantic ValidationError (union branches and list items merged)."""
+    out: list[Issue] = []
+    for err in exc.errors():
+        cls: Optional[type[BaseModel]] = model
+        info: Optional[FieldInfo] = None
+        path: list[str] = []
+        value = data
+        loc = list(err["loc"])
+        for part in loc:
+            if isinstance(part, str) and cls is not None and part in cls.model_fields:
+                info = cls.model_fields[part]
+                path.append(part)
+                value = value.get(part) if isinstance(value, dict) else None
+                cls = _model_in(info.annotation)
+            else:
+                break
+        dotted = ".".join([p for p in (prefix,) if p] + path)
+        if err["type"] == "extra_forbidden":
+            extra = str(loc[len(path)])
+            parent = dotted
+            key = f"{parent}.{extra}" if parent else extra
+            valid = sorted(cls.model_fields) if cls is not None else []
+            where = f"{parent}." if parent else ""
+            out.append(unknown_key(key, err["input"], [f"{where}{v}" for v in valid]))
+        elif info is not None:
+            out.append(Issue(dotted, value, allowed_text(info) or describe(info.annotation, info.metadata),
+                             off_hint(info)))
+        else:
+            out.append(Issue(dotted or "(config)", value, err["msg"]))
+    return out
+
+
+# ---------------------------------------------------------------------- components, from their signatures
+def _pydantic_type(hint: Any) -> Any:
+    """``int``/``float`` -> :data:`Int`/:data:`Float` (finite, not bool), through Optional/Union/Annotated/lists."""
+    if hint is int:
+        return Int
+    if hint is float:
+        return Float
+    origin, args = typing.get_origin(hint), typing.get_args(hint)
+    if origin is Annotated:
+        return Annotated[(_pydantic_type(args[0]), *args[1:])]  # type: ignore[misc]
+    if origin in (Union, types.UnionType):
+        return Union[tuple(_pydantic_type(a) for a in args)]  # type: ignore[return-value]
+    if origin in (list, collections.abc.Sequence) and args:
+        return list[_pydantic_type(args[0])]  # type: ignore[misc]
+    return hint
+
+
+def _own_parameters(fn: Callable) -> tuple[dict[str, tuple[Any, Any]], bool]:
+    """name -> (type, default) of ``fn``'s named parameters, and whether it takes ``**kwargs``."""
+    sig = inspect.signature(fn)
+    try:
+        hints = typing.get_type_hints(fn, include_extras=True)
+    except Exception:  # noqa: BLE001 - unresolvable hints: check names only
+        hints = {}
+    params: dict[str, tuple[Any, Any]] = {}
+    var_kw = False
+    for p in sig.parameters.values():
+        if p.kind is p.VAR_KEYWORD:
+            var_kw = True
+        elif p.kind is not p.VAR_POSITIONAL and p.name != "self":
+            default = ... if p.default is p.empty else p.default
+            tp = hints.get(p.name, Any if default is ... or default is None else type(default))
+            params[p.name] = (_pydantic_type(tp), default)
+    return params, var_kw
+
+
+def init_parameters(obj: Any) -> dict[str, tuple[Any, Any]]:
+    """The settings a component accepts: a function's parameters, or a class's ``__init__`` parameters
+    followed through ``**kwargs`` into its base classes' ``__init__`` (the first one found wins)."""
+    if not isinstance(obj, type):
+        return _own_parameters(obj)[0]
+    params: dict[str, tuple[Any, Any]] = {}
+    for klass in obj.__mro__:
+        init = vars(klass).get("__init__")
+        if init is None:
+            continue
+        own, var_kw = _own_parameters(init)
+        for name, spec in own.items():
+            params.setdefault(name, spec)
+        if not var_kw:
+            break
+    return params
+
+
+@functools.lru_cache(maxsize=None)
+def component_model(obj: Any, exclude: frozenset[str] = frozenset(),
+                    extra: tuple[tuple[str, Any, Any], ...] = ()) -> type[BaseModel]:
+    """A pydantic model of the settings of component ``obj`` (class or function), without ``exclude``,
+    plus ``extra`` fields ``(name, type, default)``; unknown keys refused."""
+    fields: dict[str, Any] = {}
+    for name, (tp, default) in init_parameters(obj).items():
+        if name not in exclude:
+            fields[name] = (tp, default)
+    for name, tp, default in extra:
+        fields[name] = (tp, default)
+    title = getattr(obj, "__name__", "Component")
+    return create_model(f"{title}Settings", __config__=_MODEL_CONFIG, **fields)
+
+
+def _check(model: type[BaseModel], values: dict, prefix: str) -> tuple[dict, list[Issue]]:
+    """Validate ``values`` against ``model``: (coerced values that were given, issues)."""
+    try:
+        return model.model_validate(values).model_dump(exclude_unset=True), []
+    except ValidationError as exc:
+        return values, issues_from(exc, model, values, prefix)
+
+
+def _registered(kind: str, name: Any, key: str) -> tuple[Any, list[Issue]]:
+    from nerfart_plugin import registry
+
+    valid = registry.names(kind)
+    if isinstance(name, str) and name in valid:
+        return registry.get(kind, name), []
+    return None, [Issue(key, name, "one of " + ", ".join(valid) + suggest(str(name), valid))]
+
+
+def _mapping(section: str, value: Any) -> tuple[dict, list[Issue]]:
+    if isinstance(value, dict):
+        return value, []
+    return {}, [Issue(section, value, "a section of settings (" + section + ".key=value)")]
+
+
+EncodingScale = Annotated[Float, Field(gt=0.0, le=100.0)]
+
+
+def check_encoding(cfg: Any, prefix: str = "encoding") -> tuple[dict, list[Issue]]:
+    """``encoding`` (or a nested one such as ``backbone.dir_encoding``): ``name`` + the class's settings."""
+    cfg, issues = _mapping(prefix, cfg)
+    name = cfg.get("name")
+    cls, issues2 = _registered("encoding", name, f"{prefix}.name")
+    if cls is None:
+        return cfg, issues + issues2
+    model = component_model(cls, frozenset({"bound", "in_dim"}),
+                            (("name", str, ...), ("mlp_lr_scale", EncodingScale, 1.0)))
+    return _check(model, cfg, prefix)
+
+
+def check_backbone(cfg: Any) -> tuple[dict, list[Issue]]:
+    """``backbone``: ``name`` + the field class's settings (``dir_encoding`` checked as an encoding)."""
+    cfg, issues = _mapping("backbone", cfg)
+    cls, issues2 = _registered("backbone", cfg.get("name"), "backbone.name")
+    if cls is None:
+        return cfg, issues + issues2
+    model = component_model(cls, frozenset({"encoding_cfg", "bound"}), (("name", str, ...),))
+    out, issues = _check(model, cfg, "backbone")
+    if isinstance(cfg.get("dir_encoding"), dict):
+        enc, more = check_encoding(cfg["dir_encoding"], "backbone.dir_encoding")
+        out = {**out, "dir_encoding": enc}
+        issues += more
+    return out, issues
+
+
+DataBackground = Optional[Union[Color, Literal["white", "black"]]]
+
+
+def check_data(cfg: Any) -> tuple[dict, list[Issue]]:
+    """``data``: ``kind`` + the loader's settings + the datamodule's (path, ndc, background_color)."""
+    cfg, issues = _mapping("data", cfg)
+    loader, issues2 = _registered("data", cfg.get("kind"), "data.kind")
+    if loader is None:
+        return cfg, issues + issues2
+    if cfg.get("path") == "???":
+        return cfg, [Issue("data.path", "???", f"required for data={cfg['kind']}: set data.path=/path/to/scene")]
+    model = component_model(loader, frozenset({"path"}), (
+        ("kind", str, ...), ("path", Optional[PathText], None), ("ndc", Optional[bool], None),
+        ("background_color", DataBackground, None)))
+    return _check(model, cfg, "data")
+
+
+_GUIDANCE_KEYS = ("name", "allow_random_weights", "allow_download", "perceptual")
+
+
+class GuidanceCommon(BaseModel):
+    """The keys of ``guidance`` shared by every guidance; the sub-sections are checked per component."""
+
+    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
+
+    name: str
+    allow_random_weights: bool = False
+    allow_download: Optional[bool] = None
+    perceptual: Optional[Literal["vgg", "edges"]] = None
+
+
+def _guidance_parts() -> dict[str, tuple[Any, frozenset[str]]]:
+    """Sub-section name -> (component, parameters set from the common keys instead)."""
+    from nerfart_plugin import registry
+    from nerfart_plugin.guidance import CLIPGuidance, EdgePerceptual, Perceptual
+
+    common = frozenset({"allow_random_weights", "allow_download", "device"})
+    parts: dict[str, tuple[Any, frozenset[str]]] = {n: (registry.get("guidance", n), common)
+                                                    for n in registry.names("guidance")}
+    parts.update(clip=(CLIPGuidance, common), vgg=(Perceptual, common), edges=(EdgePerceptual, frozenset()))
+    return parts
+
+
+def check_guidance(cfg: Any) -> tuple[dict, list[Issue]]:
+    """``guidance``: the common keys, then ``clip``/``vgg``/``edges``/``<name>`` from their constructors."""
+    cfg, issues = _mapping("guidance", cfg)
+    _, issues2 = _registered("guidance", cfg.get("name"), "guidance.name")
+    if issues2:
+        return cfg, issues + issues2
+    try:
+        common = GuidanceCommon.model_validate(cfg).model_dump(exclude_unset=True)
+    except ValidationError as exc:
+        return cfg, issues_from(exc, GuidanceCommon, cfg, "guidance")
+    parts = _guidance_parts()
+    out = {k: common[k] for k in _GUIDANCE_KEYS if k in common}
+    for key, value in cfg.items():
+        if key in _GUIDANCE_KEYS:
+            continue
+        if key not in parts:
+            valid = sorted([*_GUIDANCE_KEYS, *parts])
+            issues.append(unknown_key(f"guidance.{key}", value, [f"guidance.{v}" for v in valid]))
+            continue
+        sub, more = _mapping(f"guidance.{key}", value)
+        obj, exclude = parts[key]
+        out[key], more2 = _check(component_model(obj, exclude), sub, f"guidance.{key}")
+        issues += more + more2
+    return out, issues
+
+
+COMPONENTS: dict[str, Callable[[Any], tuple[dict, list[Issue]]]] = {
+    "data": check_data, "backbone": check_backbone, "encoding": check_encoding, "guidance": check_guidance,
+}
+
+
+# ---------------------------------------------------------------------- checks across sections
+def _per_step(issues: list[Issue], key: str, value: int, factor_key: str, factor: int, limit: int,
+              what: str) -> None:
+    if value * factor > limit:
+        issues.append(Issue(key, value, f"{key}={value} x {factor_key}={factor} = {value * factor:,} samples {what}: "
+                            f"at most {limit:,} fit in memory; lower one of them"))
+
+
+def cross_checks(c: dict) -> list[Issue]:
+    """Checks that involve several keys (run on a config whose sections are each valid)."""
+    issues: list[Issue] = []
+    r, rc, sc = c["render"], c["reconstruct"], c["stylize"]
+    n = int(r["num_samples"])
+    ns = int(sc.get("num_samples") or n)
+    _per_step(issues, "reconstruct.batch_rays", rc["batch_rays"], "render.num_samples", n, MAX_GRAD_SAMPLES,
+              "per training step")
+    _per_step(issues, "render.chunk", r["chunk"], "render.num_samples", n, MAX_NOGRAD_SAMPLES, "per chunk")
+    _per_step(issues, "stylize.patch_size", sc["patch_size"] ** 2, "stylize.num_samples", ns, MAX_GRAD_SAMPLES,
+              "per patch (patch_size^2 rays)")
+    _per_step(issues, "stylize.chunk", sc["chunk"], "stylize.num_samples", ns, MAX_NOGRAD_SAMPLES, "per chunk")
+    exp = c["experiment"]
+    lambdas = [k for k in exp if k.startswith("lambda_")]
+    if c["stage"] in ("stylize", "all") and lambdas and all(float(exp[k]) == 0 for k in lambdas):
+        issues.append(Issue("experiment", {k: exp[k] for k in lambdas}, "every lambda is 0, so stylization would "
+                            "optimize nothing: set at least one, e.g. experiment.lambda_dir=1.0"))
+    return issues
+
+
+# ---------------------------------------------------------------------- entry point
+def _merge(original: Any, coerced: Any) -> Any:
+    """``coerced`` where validation changed a value's meaning (``"512"`` -> 512, ``"false"`` -> False), else the
+    ``original`` (so 15 stays 15 and not 15.0: cache keys hash the config)."""
+    if isinstance(original, dict) and isinstance(coerced, dict):
+        return {k: _merge(original[k], coerced[k]) if k in coerced else v for k, v in original.items()}
+    if isinstance(original, (list, tuple)) and isinstance(coerced, (list, tuple)) and len(original) == len(coerced):
+        return [_merge(a, b) for a, b in zip(original, coerced)]
+    numbers = (int, float)
+    same_kind = type(original) is type(coerced) or (
+        isinstance(original, numbers) and isinstance(coerced, numbers)
+        and not isinstance(original, bool) and not isinstance(coerced, bool))
+    return original if same_kind and original == coerced else coerced
+
+
+def validate_config(c: dict) -> dict:
+    """Check every setting of the composed config ``c`` (a plain dict).
+
+    Returns:
+        ``c`` with the values validation converted (``"512"`` -> 512); otherwise unchanged.
+    Raises:
+        ConfigError: one message listing every violation, ``key=value: allowed (how to turn it off)``.
+    """
+    if not isinstance(c, dict):
+        raise ConfigError(f"the config must be a mapping of settings, not {type(c).__name__}")
+    c = {k: v for k, v in c.items() if k != "hydra"}
+    issues: list[Issue] = []
+    coerced, issues = _check(RunConfig, c, "")
+    out = _merge(c, coerced)
+    for section, check in COMPONENTS.items():
+        if section in c:
+            values, more = check(c[section])
+            out[section] = _merge(c[section], values)
+            issues += more
+    if not issues:
+        issues = cross_checks(RunConfig.model_validate(out).model_dump() | {k: out[k] for k in COMPONENTS if k in out})
+    raise_issues(issues)
+    return out

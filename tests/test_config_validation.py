@@ -1,0 +1,389 @@
+"""Every setting is checked before any work: schema defaults = conf/, reported cases, a property test."""
+
+from __future__ import annotations
+
+import copy
+import functools
+import typing
+from pathlib import Path
+from typing import Any
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from omegaconf import OmegaConf
+from pydantic import BaseModel
+
+from nerfart_plugin import schema
+from nerfart_plugin.config_paths import config_dir, group_options
+from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.pipeline import Pipeline, validate_config
+
+from pipeline_helpers import run_cli
+
+
+@functools.lru_cache(maxsize=None)
+def _composed(*overrides: str) -> dict:
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return OmegaConf.to_container(compose("config", overrides=list(overrides)), resolve=True)
+
+
+def cfg(*overrides: str) -> dict:
+    """The composed config (a fresh copy) with ``overrides`` (Hydra syntax)."""
+    return copy.deepcopy(_composed(*overrides))
+
+
+def error_of(*overrides: str) -> str:
+    with pytest.raises(ConfigError) as info:
+        schema.validate_config(cfg(*overrides))
+    return str(info.value)
+
+
+# ---------------------------------------------------------------------- schema defaults == conf/
+def _check_defaults(model: type[BaseModel], yaml_section: dict, where: str) -> None:
+    defaults = model().model_dump()
+    for key, value in yaml_section.items():
+        assert key in defaults, f"{where}.{key} is in conf/ but not in schema.{model.__name__}"
+        sub = schema._model_in(model.model_fields[key].annotation)
+        if sub is not None and isinstance(value, dict):
+            _check_defaults(sub, value, f"{where}.{key}")
+        else:
+            assert defaults[key] == value, f"{where}.{key}: schema default {defaults[key]!r} != conf/ {value!r}"
+    for key in set(defaults) - set(yaml_section):
+        annotation = model.model_fields[key].annotation
+        if schema._model_in(annotation) or typing.get_origin(annotation) is dict:
+            continue  # a section: compared on its own
+        assert defaults[key] is None, \
+            f"{where}.{key} is not in conf/: its schema default must be null (optional key), not {defaults[key]!r}"
+
+
+def test_schema_defaults_are_the_yaml_defaults_section_by_section():
+    raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "config.yaml"))
+    raw.pop("defaults")
+    raw.pop("hydra")
+    composed = cfg()  # the default composition (preset=balanced) must agree too
+    for source in (raw, composed):
+        for section, model in schema.SECTIONS.items():
+            if section in source:
+                _check_defaults(model, source[section], section)
+        run = {k: v for k, v in source.items() if k not in schema.SECTIONS and not isinstance(v, dict)}
+        _check_defaults(schema.RunConfig, run, "(top level)")
+    experiment = OmegaConf.to_container(OmegaConf.load(config_dir() / "experiment" / "full.yaml"))
+    _check_defaults(schema.ExperimentConfig, experiment, "experiment")
+    assert schema.validate_config(composed) == composed  # validation changes nothing in the defaults
+
+
+GROUP_VARIANTS = [(), ("data=llff", "data.path=x"), ("data=selfie", "data.path=x")] + [
+    (f"{group}={option}",) for group in ("backbone", "encoding", "guidance", "experiment", "preset")
+    for option in group_options(group)]
+
+
+@pytest.mark.parametrize("overrides", GROUP_VARIANTS, ids=lambda o: " ".join(o) or "default")
+def test_every_group_option_validates(overrides):
+    c = cfg(*overrides)
+    assert schema.validate_config(c) == c
+
+
+# ---------------------------------------------------------------------- the reported cases (preset=draft)
+REPORTED = [
+    ("reconstruct.steps=-5", "reconstruct.steps=-5: an integer in [1, "),
+    ("reconstruct.batch_rays=0", "reconstruct.batch_rays=0: an integer in [1, "),
+    ("render.num_samples=0", "render.num_samples=0: an integer in [1, 1024]"),
+    ("reconstruct.batch_rays=abc", "reconstruct.batch_rays='abc': an integer in [1, "),
+    ("seed=abc", "seed='abc': an integer in [0, 4294967295]"),
+    ("render.chunk=0", "render.chunk=0: an integer in [1, 1048576] (there is no 'no chunking'"),
+]
+
+
+@pytest.mark.parametrize("override,message", REPORTED, ids=[r[0] for r in REPORTED])
+def test_reported_impossible_settings_are_one_config_error(override, message):
+    text = error_of("preset=draft", override)
+    assert text.startswith(message), text
+    assert "\n" not in text  # one violation, one line
+
+
+def test_val_every_zero_means_no_validation():
+    c = schema.validate_config(cfg("preset=draft", "reconstruct.val_every=0"))
+    assert c["reconstruct"]["val_every"] == 0
+
+
+def test_zero_like_values_say_how_to_turn_the_feature_off():
+    assert "render.occupancy.enabled=false turns the grid off" in error_of("render.occupancy.resolution=0")
+    assert "export.enabled=false turns mesh export off" in error_of("export.resolution=0")
+    assert "export.enabled=false" in error_of("export.formats=[]")
+    assert "experiment.lambda_global=0 experiment.lambda_local=0" in error_of("stylize.tau=0")
+    assert "stylize.video_frames=0 turns the video off" in error_of("stylize.video_fps=0")
+    assert "last.ckpt" in error_of("reconstruct.checkpoint_every=0")
+    assert "stage=" in error_of("stylize.steps=0")
+    # not zero: no hint, just the range
+    assert "turns" not in error_of("render.occupancy.resolution=1000")
+
+
+OTHER_CASES = [
+    ("reconstruct.lr=nan", "reconstruct.lr=nan: a number in (0, 10]"),
+    ("stylize.lr=inf", "stylize.lr=inf: a number in (0, 10]"),
+    ("reconstruct.lr_mlp=-0.001", "reconstruct.lr_mlp=-0.001: a number in (0, 10]"),
+    ("reconstruct.lambda_mask=-1", "reconstruct.lambda_mask=-1: a number in [0, "),
+    ("experiment.lambda_global=-0.2", "experiment.lambda_global=-0.2: a number in [0, "),
+    ("stylize.tau=-1", "stylize.tau=-1: a number in (0, 100]"),
+    ("stylize.local_patch_frac=1.5", "stylize.local_patch_frac=1.5: a number in (0, 1]"),
+    ("render.neus_alpha_mode=both", "render.neus_alpha_mode='both': one of gradient, sections"),
+    ("render.occupancy.enabled=maybe", "render.occupancy.enabled='maybe': one of auto, true, false"),
+    ("stage=bogus", "stage='bogus': one of reconstruct, stylize, all, export"),
+    ("export.formats=[stl]", "export.formats=['stl']: a list of at least one value, each one of ply, obj, glb"),
+    ("render.background_color=[1,1]", "render.background_color=[1, 1]: a list of 3 values, each a number in [0, 1]"),
+    ("render.background_color=[1,1,2]", "render.background_color=[1, 1, 2]: a list of 3 values"),
+    ("reconstruct.batch_rays=true", "reconstruct.batch_rays=true: an integer"),
+    ("reconstruct.steps=12.5", "reconstruct.steps=12.5: an integer"),
+    ("prompt_augment=maybe", "prompt_augment='maybe': true or false"),
+    ("device=gpu", "device='gpu': one of auto, cpu, cuda"),
+    ("trainer.devices=0", "trainer.devices=0: one of auto, -1, or an integer in [1, 4096]"),
+    ("trainer.precision=8", "trainer.precision=8: one of 32-true"),
+    ("reconstruct.batch_rays=300000", "reconstruct.batch_rays=300000: an integer in [1, 262144]"),
+    ("render.occupancy.resolution=4096", "render.occupancy.resolution=4096: an integer in [1, 256]"),
+    ("backbone.hidden_dim=100000", "backbone.hidden_dim=100000: an integer in [1, 2048]"),
+    ("backbone.hidden_dim=0", "backbone.hidden_dim=0: an integer in [1, 2048]"),
+    ("backbone.grad_type=numeric", "backbone.grad_type='numeric': one of auto, analytic, finite_difference"),
+    ("encoding.resolution=1", "encoding.resolution=1: an integer in [2, 2048], or a list"),
+    ("encoding.n_components=abc", "encoding.n_components='abc': an integer in [1, 256]"),
+    ("backbone.dir_encoding.degree=9", "backbone.dir_encoding.degree=9: an integer in [1, 4]"),
+    ("data.resolution=-1", "data.resolution=-1: an integer in [8, 8192], or null"),
+    ("data.holdout_every=-2", "data.holdout_every=-2: an integer in [0, "),
+    ("data.kind=foo", "data.kind='foo': one of h3ds, llff, selfie"),
+    ("backbone.name=foo", "backbone.name='foo': one of nerf, neus, volsdf"),
+    ("guidance.clip.precision=fp8", "guidance.clip.precision='fp8': one of auto, fp32, bf16, fp16"),
+    ("guidance.vgg.layers=[relu9_9]", "guidance.vgg.layers=['relu9_9']: a list of at least one value, each one of"),
+    ("guidance.allow_download=sometimes", "guidance.allow_download='sometimes': true or false, or null"),
+]
+
+
+@pytest.mark.parametrize("override,message", OTHER_CASES, ids=[c[0] for c in OTHER_CASES])
+def test_other_impossible_settings(override, message):
+    text = error_of(override)
+    assert text.startswith(message), text
+
+
+def test_interpolated_keys_are_reported_with_their_source():
+    text = error_of("render.sdf_grad_samples=0")  # backbone.grad_samples is ${render.sdf_grad_samples}
+    assert "render.sdf_grad_samples=0: a number in (0, 1] (reconstruct.lambda_eikonal=0" in text
+    assert "backbone.grad_samples=0" in text
+
+
+def test_memory_of_several_settings_together_is_bounded():
+    text = error_of("reconstruct.batch_rays=100000", "render.num_samples=1000")
+    assert "reconstruct.batch_rays=100000 x render.num_samples=1000" in text and "lower one of them" in text
+    text = error_of("stylize.patch_size=1024", "stylize.num_samples=1000")
+    assert "stylize.patch_size" in text
+
+
+def test_grid_and_other_constructor_checks_are_config_errors():
+    from nerfart_plugin.fields import build_field
+
+    with pytest.raises(ConfigError, match="encoding.resolution or encoding.n_components"):
+        build_field({"name": "nerf"}, {"name": "grid", "resolution": 2048, "n_components": 256})
+    with pytest.raises(ConfigError, match="beta_init"):
+        build_field({"name": "volsdf", "beta_init": 1e-5, "beta_min": 1e-4}, {"name": "grid", "resolution": 8})
+
+
+def test_unknown_keys_suggest_the_closest_valid_key():
+    assert "did you mean render.num_samples?" in error_of("+render.num_sampels=3")
+    assert "did you mean seed?" in error_of("+seeed=3")
+    assert "did you mean backbone.hidden_dim?" in error_of("+backbone.hiden_dim=3")
+    assert "did you mean stylize.num_negatives?" in error_of("+stylize.num_negative=3")
+    text = error_of("+render.new_key=1")
+    assert text.startswith("render.new_key=1: unknown setting") and "render.num_samples" in text
+    assert "guidance.clip" in error_of("+guidance.clp={model: x}")
+
+
+def test_optional_keys_absent_from_conf_are_accepted():
+    c = schema.validate_config(cfg("+render.ndc_bound=2.0", "+stylize.lambda_eikonal=0.0"))
+    assert c["render"]["ndc_bound"] == 2.0
+
+
+def test_every_violation_in_one_error():
+    text = error_of("reconstruct.lr=-1", "stylize.lr=inf", "render.occupancy.enabled=maybe", "seed=abc")
+    first, *lines = text.split("\n")
+    assert first == "4 invalid settings:"
+    assert sorted(line.split("=")[0].strip() for line in lines) == [
+        "reconstruct.lr", "render.occupancy.enabled", "seed", "stylize.lr"]
+
+
+def test_values_are_converted_only_where_their_meaning_changes():
+    c = cfg()
+    c["reconstruct"]["batch_rays"] = "512"
+    c["prompt_augment"] = "false"
+    c["prompt"] = 1984
+    out = schema.validate_config(c)
+    assert out["reconstruct"]["batch_rays"] == 512 and out["prompt_augment"] is False and out["prompt"] == "1984"
+    assert type(out["data"]["resolution"]) is int and type(out["reconstruct"]["lr"]) is float
+
+
+def test_pipeline_validates_before_touching_data(tmp_path):
+    missing = tmp_path / "no-such-scene"
+    with pytest.raises(ConfigError, match="reconstruct.batch_rays"):
+        Pipeline(cfg("stage=reconstruct", f"data.path={missing}", "reconstruct.batch_rays=0"))
+    with pytest.raises(ConfigError, match="source_checkpoint=.*no such file"):
+        Pipeline(cfg("stage=export", f"source_checkpoint={missing}.ckpt", f"output_root={tmp_path}"))
+    with pytest.raises(ConfigError, match="device=cuda:7"):
+        validate_config(cfg("stage=reconstruct", "device=cuda:7"))
+
+
+def test_cli_bad_value_is_one_config_error_line_without_traceback(tmp_path):
+    proc = run_cli(["preset=draft", "reconstruct.batch_rays=abc", f"output_root={tmp_path}",
+                    f"hydra.run.dir={tmp_path}/hydra"], timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2, out[-2000:]
+    assert "Traceback" not in out and "Error executing job" not in out, out[-2000:]
+    lines = [line for line in out.splitlines() if "ConfigError" in line]
+    assert len(lines) == 1 and "reconstruct.batch_rays='abc': an integer in [1, " in lines[0], out[-2000:]
+
+
+# ---------------------------------------------------------------------- property test: every setting
+def _leaves(model: type[BaseModel], prefix: str) -> list[str]:
+    out = []
+    for name, info in model.model_fields.items():
+        if typing.get_origin(info.annotation) is dict:
+            continue  # a component section: enumerated from its component below
+        sub = schema._model_in(info.annotation)
+        out += _leaves(sub, f"{prefix}{name}.") if sub is not None else [f"{prefix}{name}"]
+    return out
+
+
+def _component_leaves(variant: tuple[str, ...]) -> list[str]:
+    c = cfg(*variant)
+    keys = []
+    for section in ("data", "backbone", "encoding"):
+        model = _section_model(section, c[section])
+        keys += [f"{section}.{k}" for k in model.model_fields]
+    keys += [f"backbone.dir_encoding.{k}" for k in c["backbone"]["dir_encoding"]]
+    keys += [f"guidance.{k}" for k in schema.GuidanceCommon.model_fields]
+    for part, (obj, exclude) in schema._guidance_parts().items():
+        if part in c["guidance"]:
+            keys += [f"guidance.{part}.{k}" for k in schema.component_model(obj, exclude).model_fields]
+    return keys
+
+
+def _section_model(section: str, values: dict) -> type[BaseModel]:
+    from nerfart_plugin import registry
+
+    if section == "data":
+        return schema.component_model(registry.get("data", values["kind"]), frozenset({"path"}), (
+            ("kind", str, ...), ("path", Any, None), ("ndc", Any, None), ("background_color", Any, None)))
+    if section == "backbone":
+        return schema.component_model(registry.get("backbone", values["name"]), frozenset({"encoding_cfg", "bound"}),
+                                      (("name", str, ...),))
+    return schema.component_model(registry.get("encoding", values["name"]), frozenset({"bound", "in_dim"}),
+                                  (("name", str, ...), ("mlp_lr_scale", float, 1.0)))
+
+
+VARIANTS = [("guidance=toy",), ("backbone=nerf", "encoding=frequency"), ("backbone=neus",),
+            ("data=llff", "data.path=x"), ("data=selfie", "data.path=x", "guidance=clip")]
+SETTINGS = sorted({(v, key) for v in VARIANTS for key in _leaves(schema.RunConfig, "") + _component_leaves(v)})
+
+BAD_VALUES = st.one_of(
+    st.sampled_from([0, -1, 0.0, -0.5, float("nan"), float("inf"), -float("inf"), 10**12, 2**63, 1e300, True,
+                     False, None, "", "abc", "0", "auto", [], [1, 2], {}, {"a": 1}, "???", "nan", "1e9"]),
+    st.integers(min_value=-(2**64), max_value=2**64),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=12),
+    st.lists(st.one_of(st.integers(-5, 5), st.floats(-2, 2), st.text(max_size=3)), max_size=4),
+)
+
+
+def _set(c: dict, key: str, value: Any) -> None:
+    """``c[a][b][leaf] = value`` for ``key`` = "a.b.leaf" (nothing if a parent is no longer a section)."""
+    *parents, leaf = key.split(".")
+    node: Any = c
+    for p in parents:
+        node = node.get(p) if isinstance(node, dict) else None
+    if isinstance(node, dict):
+        node[leaf] = value
+
+
+def _small(c: dict) -> bool:
+    """Components cheap enough to build in the property test (sizes at most moderate)."""
+    nums = [v for sec in ("backbone", "encoding") for v in c[sec].values() if isinstance(v, int)]
+    res = c["encoding"].get("resolution", 1)
+    return all(v <= 256 for v in nums) and all(r <= 256 for r in (res if isinstance(res, list) else [res]))
+
+
+def _build_cheap_components(c: dict, tmp: Path) -> None:
+    """Everything that can be built without data, weights or training, from a config that validated."""
+    from nerfart_plugin.data.datamodule import SceneDataModule
+    from nerfart_plugin.export import MeshExtractor
+    from nerfart_plugin.fields import OccupancyGrid, build_field
+    from nerfart_plugin.guidance import build_guidance, build_perceptual
+    from nerfart_plugin.pipeline import _trainer
+
+    if _small(c):
+        build_field(c["backbone"], c["encoding"], bound=float(c["render"].get("ndc_bound") or 1.0))
+    occ = c["render"]["occupancy"]
+    OccupancyGrid(resolution=min(int(occ["resolution"]), 32), threshold=occ["threshold"],
+                  update_every=occ["update_every"], warmup_steps=occ["warmup_steps"])
+    ec = c["export"]
+    MeshExtractor(resolution=ec["resolution"], chunk=ec["chunk"], level=ec["level"],
+                  remove_floaters=ec["remove_floaters"])
+    SceneDataModule({**c["data"], "background_color": c["data"].get("background_color",
+                                                                    c["render"]["background_color"])})
+    if c["guidance"]["name"] == "toy":
+        build_guidance(c["guidance"])
+        build_perceptual(c["guidance"])
+    import torch
+
+    _trainer(tmp, int(c["reconstruct"]["steps"]), torch.device("cpu"), [], c["trainer"])
+
+
+@settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                 HealthCheck.function_scoped_fixture])
+@given(setting=st.sampled_from(SETTINGS), value=BAD_VALUES, extra=st.sampled_from(SETTINGS), value2=BAD_VALUES,
+       two=st.booleans())
+def test_property_any_value_of_any_setting_is_valid_or_a_project_error(tmp_path, setting, value, extra, value2, two):
+    """Out-of-range, zero, negative, NaN, inf, huge and wrong-typed values of every setting of every section (one
+    or two at a time): validation (then building the cheap components) succeeds or raises a NerfArtError."""
+    variant, key = setting
+    c = cfg(*variant, "stage=reconstruct")
+    _set(c, key, value)
+    if two and extra[0] == variant:
+        _set(c, extra[1], value2)
+    try:
+        out = validate_config(c)
+    except NerfArtError:
+        return
+    try:
+        _build_cheap_components(out, tmp_path)
+    except NerfArtError:
+        pass
+
+
+EDGE_VALUES = [0, -1, 0.5, -0.5, float("nan"), float("inf"), 10**12, True, None, "", "abc", [], [0, 0], {"k": 1}]
+
+
+@pytest.mark.parametrize("variant", VARIANTS, ids=" ".join)
+def test_every_setting_with_every_edge_value(tmp_path, variant):
+    """The exhaustive counterpart of the property test: each setting of the variant x each edge value."""
+    for v, key in SETTINGS:
+        if v != variant:
+            continue
+        for value in EDGE_VALUES:
+            c = cfg(*variant, "stage=reconstruct")
+            _set(c, key, copy.deepcopy(value))
+            try:
+                out = validate_config(c)
+            except NerfArtError:
+                continue
+            try:
+                _build_cheap_components(out, tmp_path)
+            except NerfArtError:
+                pass
+
+
+def test_property_test_covers_every_section():
+    sections = {key.split(".")[0] for _, key in SETTINGS}
+    assert {"render", "reconstruct", "stylize", "export", "trainer", "experiment", "data", "backbone", "encoding",
+            "guidance", "seed", "prompt", "stage", "lock_timeout"} <= sections
+    keys = {key for _, key in SETTINGS}
+    assert {"data.sfm_threads", "data.factor", "guidance.clip.precision", "guidance.toy.input_size",
+            "guidance.vgg.layers", "guidance.edges.num_scales", "backbone.inv_s_max", "backbone.beta_min",
+            "backbone.density_activation", "encoding.n_freqs", "encoding.n_components", "encoding.mlp_lr_scale",
+            "backbone.dir_encoding.degree", "render.occupancy.threshold", "trainer.precision"} <= keys

@@ -1,0 +1,375 @@
+"""Runs that never collide, never litter, never lose; checkpoints that never run code.
+
+Locks on run folders, unwritable output roots, Ctrl-C (a real SIGINT) and resume,
+incompatible checkpoints, and crafted checkpoints whose unpickling would run code.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+from nerfart_plugin.errors import CheckpointError, ConfigError, RunInterrupted, RunLockedError
+from nerfart_plugin.pipeline import Pipeline
+from nerfart_plugin.utils.lock import lock_path
+
+from pipeline_helpers import REPO, cli_args, run_cli, tiny_cfg
+
+RECON_SETTINGS = ["backbone=nerf", "reconstruct.steps=12", "export.enabled=false"]
+RECON = ["stage=reconstruct", *RECON_SETTINGS]
+ENV = {**os.environ, "PYTHONPATH": str(REPO)}
+
+
+def _recon_dir(root: Path, *overrides: str) -> Path:
+    p = Pipeline(tiny_cfg(root, DEFAULT_SCENE, *overrides))
+    p.load_data()
+    return p.recon_dir
+
+
+@pytest.fixture(scope="module")
+def nerf_final(tmp_path_factory) -> Path:
+    """final.ckpt of a tiny NeRF reconstruction of the shipped head (12 steps)."""
+    root = tmp_path_factory.mktemp("nerf")
+    res = Pipeline(tiny_cfg(root, DEFAULT_SCENE, *RECON)).run()
+    return Path(res["reconstruction"]["dir"]) / "final.ckpt"
+
+
+def _step(ckpt: Path) -> int:
+    return int(torch.load(ckpt, map_location="cpu", weights_only=True)["global_step"])
+
+
+def _wait_for_checkpoint(pattern: str, root: Path, proc: subprocess.Popen, min_step: int) -> Path:
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        for found in root.glob(pattern):
+            try:
+                if _step(found) >= min_step:
+                    return found
+            except Exception:  # noqa: BLE001 - being replaced at this instant
+                pass
+        time.sleep(0.1)
+    raise AssertionError(f"no {pattern} at step >= {min_step} before the run ended (rc={proc.poll()})")
+
+
+# ---------------------------------------------------------------------- val_every=0
+def test_val_every_zero_trains_without_validation(tmp_path):
+    res = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON, "reconstruct.val_every=0")).run()
+    run_dir = Path(res["reconstruction"]["dir"])
+    assert (run_dir / "final.ckpt").exists() and not list(run_dir.glob("val/*.png"))
+    assert json.loads((run_dir / "metrics.json").read_text())["val_views"] > 0  # held-out metrics after training
+
+
+# ---------------------------------------------------------------------- the run-folder lock
+HOLDER = """
+import sys, time
+from pathlib import Path
+from nerfart_plugin.utils.lock import run_lock
+with run_lock(Path(sys.argv[1]), None):
+    print("locked", flush=True)
+    time.sleep(float(sys.argv[2]))
+"""
+
+
+def _hold_lock(run_dir: Path, seconds: float) -> subprocess.Popen:
+    proc = subprocess.Popen([sys.executable, "-c", HOLDER, str(run_dir), str(seconds)], env=ENV, cwd=REPO,
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "locked"
+    return proc
+
+
+def test_a_held_run_folder_stops_or_waits_and_names_the_holder(tmp_path, caplog):
+    run_dir = _recon_dir(tmp_path, *RECON)
+    holder = _hold_lock(run_dir, 6.0)
+    try:
+        with pytest.raises(RunLockedError, match=rf"in use by process {holder.pid} on .*lock_timeout=0"):
+            Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON, "lock_timeout=0")).run()
+        t0 = time.time()
+        with pytest.raises(RunLockedError, match=r"after waiting 1 s \(lock_timeout=1\)"):
+            Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON, "lock_timeout=1")).run()
+        assert 0.9 < time.time() - t0 < 30
+        assert not (run_dir / "final.ckpt").exists() and not (run_dir / "last.ckpt").exists()  # nothing touched
+        with caplog.at_level(logging.WARNING, logger="nerfart_plugin"):
+            res = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON)).run()  # lock_timeout=null: waits, then runs
+        assert holder.poll() is not None, "ran before the holder released the folder"
+        assert f"in use by process {holder.pid}" in caplog.text and "waiting until it is free" in caplog.text
+        assert Path(res["reconstruction"]["dir"]) == run_dir and (run_dir / "final.ckpt").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert not lock_path(run_dir).with_suffix(".lock.json").exists()  # the holder note is removed on release
+
+
+def test_ddp_worker_ranks_do_not_wait_for_the_lock_of_their_rank_0(tmp_path, monkeypatch):
+    from nerfart_plugin.utils.lock import run_lock
+
+    run_dir = tmp_path / "reconstructions" / "run"
+    holder = _hold_lock(run_dir, 3.0)  # rank 0 of the launch holds the run folder
+    try:
+        monkeypatch.setenv("LOCAL_RANK", "1")  # as Lightning's launcher sets it for the worker processes
+        t0 = time.time()
+        with run_lock(run_dir, 0):
+            assert time.time() - t0 < 1.0
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+@pytest.mark.slow
+def test_two_processes_on_the_same_run_do_not_collide(tmp_path):
+    """The same command twice at once: one reconstructs, the other waits for it and reuses the result."""
+    over = [*RECON, "reconstruct.steps=400"]  # long enough for the second process to start meanwhile
+    args = [sys.executable, "-m", "nerfart_plugin", *cli_args(tmp_path, DEFAULT_SCENE, *over)[:-1]]
+    log_file = open(tmp_path / "first.log", "w")  # a file, not a pipe: a full pipe would stall the run
+    first = subprocess.Popen(args + [f"hydra.run.dir={tmp_path}/h1"], cwd=REPO, env=ENV, stdout=log_file,
+                             stderr=subprocess.STDOUT)
+    run_dir = _recon_dir(tmp_path, *over)
+    deadline = time.time() + 120
+    while not lock_path(run_dir).with_suffix(".lock.json").exists() and time.time() < deadline:
+        time.sleep(0.05)
+    second = subprocess.run(args + [f"hydra.run.dir={tmp_path}/h2"], cwd=REPO, env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, timeout=600)
+    first.wait(timeout=600)
+    log_file.close()
+    out1 = (tmp_path / "first.log").read_text()
+    assert first.returncode == 0, out1[-2000:]
+    assert second.returncode == 0, second.stdout[-2000:]
+    assert f"in use by process {first.pid}" in second.stdout, second.stdout[-2000:]
+    assert "reusing the cached reconstruction" in second.stdout
+    assert _step(run_dir / "final.ckpt") == 400
+    assert len(list((run_dir / "logs").glob("version_*"))) == 1  # trained once
+
+
+# ---------------------------------------------------------------------- unwritable output roots
+def test_output_root_with_a_file_in_the_way_is_a_config_error(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    for root in (blocker, blocker / "runs"):
+        with pytest.raises(ConfigError, match=rf"output_root={re.escape(str(root))}: {re.escape(str(blocker))} is a file"):
+            Pipeline(tiny_cfg(root, DEFAULT_SCENE, *RECON))
+    proc = run_cli(["stage=reconstruct", f"output_root={blocker / 'runs'}"], timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2 and "Traceback" not in out, out[-2000:]
+    assert f"ConfigError: output_root={blocker / 'runs'}: {blocker} is a file" in out
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders (chmod does not stop it)")
+def test_read_only_output_root_is_a_config_error(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o500)
+    try:
+        with pytest.raises(ConfigError, match="cannot write into"):
+            Pipeline(tiny_cfg(ro / "runs", DEFAULT_SCENE, *RECON))
+        with pytest.raises(ConfigError, match="cannot write into"):
+            Pipeline(tiny_cfg(ro, DEFAULT_SCENE, *RECON))
+    finally:
+        ro.chmod(0o700)
+
+
+def test_full_disk_is_a_config_error(tmp_path, monkeypatch):
+    import shutil
+
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(10**9, 10**9 - 2**20, 2**20))
+    with pytest.raises(ConfigError, match=r"only 1 MiB free"):
+        Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON))
+
+
+# ---------------------------------------------------------------------- Ctrl-C
+def _interrupt(args: list[str], pattern: str, root: Path, min_step: int) -> tuple[subprocess.CompletedProcess, Path]:
+    log_file = root.parent / f"{root.name}-interrupted.log"  # a file, not a pipe: a full pipe would stall the run
+    with open(log_file, "w") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "nerfart_plugin", *args], cwd=REPO, env=ENV, stdout=fh,
+                                stderr=subprocess.STDOUT)
+        last = _wait_for_checkpoint(pattern, root, proc, min_step)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=300)
+    out = log_file.read_text()
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, out), last
+
+
+def _final_state(root: Path, kind: str) -> dict[str, torch.Tensor]:
+    return torch.load(next(root.glob(f"{kind}/*/final.ckpt")), map_location="cpu", weights_only=True)["state_dict"]
+
+
+@pytest.mark.slow
+def test_sigint_during_reconstruction_leaves_a_resumable_run(tmp_path):
+    over = [*RECON, "reconstruct.steps=60", "render.occupancy.update_every=4"]
+    stopped, straight = tmp_path / "stopped", tmp_path / "straight"
+    proc, last = _interrupt(cli_args(stopped, DEFAULT_SCENE, *over), "reconstructions/*/last.ckpt", stopped, 10)
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    m = re.search(r"RunInterrupted: interrupted at step (\d+); run the same command again to resume from (\S+)",
+                  proc.stderr)
+    assert m, proc.stderr[-3000:]
+    assert Path(m.group(2)) == last and _step(last) == int(m.group(1)) < 60  # checkpoint at the step it stopped
+    assert not list(stopped.glob("reconstructions/*/final.ckpt")) and "Traceback" not in proc.stderr
+
+    for root in (stopped, straight):  # resume the interrupted run; run the other straight through
+        r = run_cli(cli_args(root, DEFAULT_SCENE, *over), timeout=600, env=ENV)
+        assert r.returncode == 0, r.stderr[-2000:]
+        assert ("resuming the reconstruction from" in r.stdout + r.stderr) == (root == stopped)
+    a, b = _final_state(stopped, "reconstructions"), _final_state(straight, "reconstructions")
+    assert a.keys() == b.keys()
+    for k in a:
+        if a[k].is_floating_point():
+            torch.testing.assert_close(a[k], b[k], rtol=1e-4, atol=1e-5, msg=f"{k} differs after resume")
+
+
+@pytest.mark.slow
+def test_sigint_during_stylization_leaves_a_resumable_run(tmp_path):
+    over = ["stage=all", "guidance=toy", "+prompt=red", "backbone=nerf", "reconstruct.steps=10", "export.enabled=false",
+            "stylize.steps=40", "stylize.checkpoint_every=2", "stylize.video_frames=0"]
+    proc, last = _interrupt(cli_args(tmp_path, DEFAULT_SCENE, *over), "stylizations/*/last.ckpt", tmp_path, 4)
+    assert proc.returncode == 130, proc.stderr[-3000:]
+    assert re.search(r"interrupted at step \d+; run the same command again to resume from \S+stylizations\S+last.ckpt",
+                     proc.stderr), proc.stderr[-3000:]
+    assert not list(tmp_path.glob("stylizations/*/final.ckpt"))
+    r = run_cli(cli_args(tmp_path, DEFAULT_SCENE, *over), timeout=600, env=ENV)
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = r.stdout + r.stderr
+    assert "resuming the stylization from" in out and "reusing the cached reconstruction" in out
+    assert _step(next(tmp_path.glob("stylizations/*/final.ckpt"))) == 40
+
+
+def test_ctrl_c_outside_training_is_reported_as_resumable(tmp_path, monkeypatch):
+    p = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON))
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(p, "load_data", interrupted)
+    with pytest.raises(RunInterrupted, match="run the same command again"):
+        p.run()
+
+
+# ---------------------------------------------------------------------- incompatible checkpoints
+TOY = ["guidance=toy", "prompt=red", "stylize.steps=2", "export.enabled=false", "stylize.video_frames=0"]
+
+
+def test_source_checkpoint_of_another_backbone_names_the_file_and_the_difference(tmp_path, nerf_final):
+    for overrides, differs in ((["backbone=volsdf"], "backbone.name: 'nerf' in the checkpoint, 'volsdf' here"),
+                               (["backbone=nerf", "backbone.hidden_dim=32"],
+                                "backbone.hidden_dim: 64 in the checkpoint, 32 here"),
+                               (["backbone=nerf", "encoding=frequency"],
+                                "encoding.name: 'grid' in the checkpoint, 'frequency' here")):
+        for stage in ("stylize", "export"):
+            cfg = tiny_cfg(tmp_path, DEFAULT_SCENE, f"stage={stage}", *TOY, *overrides,
+                           f"source_checkpoint={nerf_final}")
+            with pytest.raises(CheckpointError) as info:
+                Pipeline(cfg).run()
+            text = str(info.value)
+            assert text.startswith(f"{nerf_final} does not fit this run") and differs in text, text
+            assert "source_checkpoint=" in text  # the fix
+    assert not list(tmp_path.glob("stylizations/*"))  # nothing started
+
+
+def test_files_that_are_not_checkpoints_are_clear_errors(tmp_path):
+    text = tmp_path / "notes.ckpt"
+    text.write_text("not a checkpoint")
+    other = tmp_path / "other.ckpt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    for path, message in ((text, "not a PyTorch checkpoint"), (other, "not a nerfart_plugin / Lightning checkpoint")):
+        with pytest.raises(CheckpointError, match=message):
+            Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=stylize", *TOY, f"source_checkpoint={path}")).run()
+
+
+def test_foreign_and_newer_checkpoints(tmp_path, nerf_final):
+    from nerfart_plugin.checkpoints import load_checkpoint
+
+    ckpt = torch.load(nerf_final, map_location="cpu", weights_only=True)
+    foreign = {"state_dict": {k: v[..., :1] if v.dim() else v for k, v in ckpt["state_dict"].items()}}
+    path = tmp_path / "foreign.ckpt"
+    torch.save(foreign, path)
+    with pytest.raises(CheckpointError, match=r"its tensors do not match this model \(.*in the checkpoint.*here.*"
+                                              r"records no nerfart_plugin settings"):
+        Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=export", "backbone=nerf", f"source_checkpoint={path}")).run()
+    newer = dict(ckpt, nerfart={**ckpt["nerfart"], "format": 99, "version": "9.0"})
+    torch.save(newer, path)
+    with pytest.raises(CheckpointError, match="written by nerfart_plugin 9.0 .*upgrade"):
+        load_checkpoint(path)
+    assert ckpt["nerfart"]["backbone"]["name"] == "nerf" and ckpt["nerfart"]["version"]
+
+
+def test_an_incompatible_last_ckpt_is_not_resumed(tmp_path, nerf_final):
+    import shutil
+
+    run_dir = _recon_dir(tmp_path, *RECON, "backbone=volsdf")
+    run_dir.mkdir(parents=True)
+    shutil.copy(nerf_final, run_dir / "last.ckpt")
+    with pytest.raises(CheckpointError, match=rf"{re.escape(str(run_dir / 'last.ckpt'))} does not fit this run: .*"
+                                              r"backbone.name: 'nerf' in the checkpoint, 'volsdf' here.*resume=false"):
+        Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON, "backbone=volsdf")).run()
+
+
+def test_checkpoints_of_version_0_1_0_with_a_scene_setup_object_still_load(tmp_path, nerf_final):
+    from nerfart_plugin.checkpoints import load_checkpoint
+    from nerfart_plugin.systems.scene_setup import SceneSetup
+
+    ckpt = torch.load(nerf_final, map_location="cpu", weights_only=True)
+    ckpt.pop("nerfart")
+    ckpt["hyper_parameters"]["setup"] = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, 16, 16, True, [])
+    path = tmp_path / "old.ckpt"
+    torch.save(ckpt, path)
+    assert isinstance(load_checkpoint(path)["hyper_parameters"]["setup"], SceneSetup)
+
+
+# ---------------------------------------------------------------------- checkpoints that would run code
+class _RunsCode:
+    """Unpickling this runs a shell command (what a malicious checkpoint does)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def _evil_checkpoint(path: Path, marker: Path, template: Path) -> Path:
+    ckpt = torch.load(template, map_location="cpu", weights_only=True)
+    ckpt["callbacks"] = {"payload": _RunsCode(marker)}
+    torch.save(ckpt, path)
+    return path
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_and_runs_nothing(tmp_path, nerf_final):
+    marker = tmp_path / "PWNED"
+    evil = _evil_checkpoint(tmp_path / "evil.ckpt", marker, nerf_final)
+    for stage in ("stylize", "export"):
+        with pytest.raises(CheckpointError, match=r"Refusing to load .*evil.ckpt: it holds Python objects other "
+                                                  r"than tensors and plain data \(.*system.*could run code"):
+            Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, f"stage={stage}", *TOY, "backbone=nerf",
+                              f"source_checkpoint={evil}")).run()
+    assert not marker.exists()
+
+    run_dir = _recon_dir(tmp_path, *RECON)  # the same file as the last.ckpt a run would resume from
+    run_dir.mkdir(parents=True)
+    _evil_checkpoint(run_dir / "last.ckpt", marker, nerf_final)
+    with pytest.raises(CheckpointError, match=r"Refusing to load .*last.ckpt.*could run code"):
+        Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON)).run()
+    assert not marker.exists()
+    # ... and the cached final.ckpt of a reconstruction, read by the stylization stage
+    (run_dir / "last.ckpt").unlink()
+    _evil_checkpoint(run_dir / "final.ckpt", marker, nerf_final)
+    with pytest.raises(CheckpointError, match="Refusing to load"):
+        Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=stylize", *TOY, *RECON_SETTINGS)).run()
+    assert not marker.exists()
+    torch.load(evil, weights_only=False)  # the file really runs code when loaded unsafely
+    assert marker.exists()
+
+
+def test_no_unsafe_deserialization_in_the_package():
+    src = {p: p.read_text() for p in (REPO / "nerfart_plugin").rglob("*.py")}
+    for pattern in (r"weights_only\s*=\s*False", r"allow_pickle\s*=\s*True", r"\bpickle\.loads?\(",
+                    r"yaml\.load\(", r"torch\.load\((?![^)]*weights_only=True)"):
+        hits = [str(p) for p, text in src.items() if re.search(pattern, text)]
+        assert not hits, (pattern, hits)
