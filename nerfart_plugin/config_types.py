@@ -70,7 +70,7 @@ Depth = Annotated[Int, Field(ge=0, le=MAX_DEPTH)]
 Fraction = Annotated[Float, Field(gt=0.0, le=1.0)]
 #: a number > 0
 PositiveFloat = Annotated[Float, Field(gt=0.0)]
-#: long image side in pixels (null: native size)
+#: long image side in pixels ("auto": min(native, 480); null: native size)
 Resolution = Optional[Union[Literal["auto"], Annotated[Int, Field(ge=8, le=8192)]]]
 #: a random seed (numpy and Lightning accept unsigned 32-bit seeds)
 Seed = Annotated[Int, Field(ge=0, le=2**32 - 1)]

@@ -120,10 +120,14 @@ class ReconstructConfig(Section):
 class StylizeConfig(Section):
     """``stylize``: stage 2, the text-driven fine-tuning (Eq. 8)."""
 
-    steps: Int = Setting(100, ge=1, le=10**9, description="optimizer steps (one view each)", off=_NO_STEPS)
-    lr: Float = Setting(0.002, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
-    lr_mlp: Float = Setting(0.0005, gt=0.0, le=10.0, description="Adam rate of the MLPs")
-    resolution: Int = Setting(128, ge=8, le=4096, description="long side (pixels) of the view the CLIP losses see")
+    steps: Int = Setting(200, ge=1, le=10**9, description="optimizer steps (one view each)", off=_NO_STEPS)
+    epochs: Optional[Int] = Setting(None, ge=1, le=10**6, description="if set, steps = epochs x training views "
+                                    "(the paper: 4); null: use steps")
+    lr: Float = Setting(0.01, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
+    lr_mlp: Float = Setting(0.0025, gt=0.0, le=10.0, description="Adam rate of the MLPs")
+    resolution: Union[Literal["auto"], Annotated[Int, Field(ge=8, le=4096)]] = Setting(
+        128, description="long side (pixels) of the view the CLIP losses see; auto: the loaded "
+        "images' own (the data resolution policy)", allowed="auto or an integer in [8, 4096]")
     patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)")
     num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing; null: "
                                          "render.num_samples")
@@ -132,12 +136,16 @@ class StylizeConfig(Section):
     num_negatives: Int = Setting(64, ge=1, le=100_000, description="negative prompts per step (Eq. 5)",
                                  off="experiment.lambda_global=0 experiment.lambda_local=0 turn the contrastive "
                                      "terms off (or experiment=no_contrastive)")
-    negative_threshold: Float = Setting(0.85, ge=-1.0, le=1.0, description="negatives whose text cosine to the "
-                                        "target exceeds this are excluded")
+    negatives: str = Setting("auto", min_length=1, description="negative prompts (Eq. 5): auto | package | "
+                             "official | /path/to/file.txt")
+    negative_threshold: Union[Literal["auto"], Annotated[Float, Field(ge=-1.0, le=1.0)]] = Setting(
+        "auto", description="negatives whose text cosine to the target exceeds this are excluded "
+        "(besides the rules by meaning); auto: the guidance's (CLIP 0.85, imagenet 0.2)",
+        allowed="auto or a cosine in [-1, 1]")
     tau: Float = Setting(0.07, gt=0.0, le=100.0, description="temperature of the contrastive losses (Eq. 5)",
                          off="experiment.lambda_global=0 experiment.lambda_local=0 turn the contrastive terms off")
     local_patches: Int = Setting(4, ge=0, le=1024, description="local patches per step (Eq. 6); 0: no local term")
-    local_patch_frac: Fraction = Setting(0.1, description="local patch side as a fraction of the view side",
+    local_patch_frac: Fraction = Setting(0.1, description="local patch AREA as a fraction of the view's area",
                                          off="stylize.local_patches=0 or experiment.lambda_local=0 turns the local "
                                              "term off")
     render_every: Int = Setting(25, ge=0, le=10**9, description="steps between saved source|stylized renders; 0: none")
@@ -147,8 +155,10 @@ class StylizeConfig(Section):
     video_frames: Int = Setting(24, ge=0, le=100_000, description="frames of the orbit video; 0: no video")
     video_fps: Int = Setting(12, ge=1, le=240, description="frames per second of the video",
                              off="stylize.video_frames=0 turns the video off")
-    lambda_eikonal: Optional[Float] = Setting(None, ge=0.0, le=1e6, description="eikonal weight while stylizing "
-                                              "SDF backbones; null: 0.1")
+    occupancy_update_every: Int = Setting(8, ge=0, le=10**9, description="steps between re-estimates of the "
+                                          "occupancy grid from the stylized field; 0: keep the reconstruction's")
+    occupancy_band: Float = Setting(3.0, gt=0.0, le=1000.0, description="SDF band (occupancy cells) around the "
+                                    "moving surface that is sampled")
 
 
 MeshFormat = Literal["ply", "obj", "glb"]
@@ -209,6 +219,10 @@ class ExperimentConfig(Section):
     lambda_local: Float = Setting(0.1, ge=0.0, le=1e4, description="weight of the local contrastive loss; 0: off")
     lambda_perceptual: Float = Setting(2.0, ge=0.0, le=1e4, description="weight of the VGG perceptual loss; 0: off")
     lambda_reg: Float = Setting(0.1, ge=0.0, le=1e4, description="weight of the weight regularization; 0: off")
+    lambda_eikonal: Float = Setting(0.1, ge=0.0, le=1e4, description="not in Eq. 8: eikonal weight while "
+                                    "stylizing SDF backbones; 0: off")
+    lambda_silhouette: Float = Setting(0.0, ge=0.0, le=1e4, description="not in Eq. 8: keep the source render's "
+                                       "silhouette (opacity BCE); 0: off (the paper)")
 
 
 def _prompt_text(value: Any) -> Any:
@@ -597,7 +611,8 @@ def check_data(cfg: Any) -> tuple[dict, list[Issue]]:
         return cfg, [Issue("data.path", "???", f"required for data={cfg['kind']}: set data.path=/path/to/scene")]
     model = component_model(loader, frozenset({"path"}), (
         ("kind", str, ...), ("path", Optional[PathText], None), ("ndc", Optional[bool], None),
-        ("background_color", DataBackground, None)))
+        ("background_color", DataBackground, None),
+        ("subject", Optional[Literal["person", "object", "scene"]], None)))
     return _check(model, cfg, "data")
 
 
@@ -612,18 +627,20 @@ class GuidanceCommon(BaseModel):
     name: str
     allow_random_weights: bool = False
     allow_download: Optional[bool] = None
-    perceptual: Optional[Literal["vgg", "edges"]] = None
+    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = None
 
 
 def _guidance_parts() -> dict[str, tuple[Any, frozenset[str]]]:
     """Sub-section name -> (component, parameters set from the common keys instead)."""
     from nerfart_plugin import registry
     from nerfart_plugin.guidance import CLIPGuidance, EdgePerceptual, Perceptual
+    from nerfart_plugin.guidance.imagenet import LitePerceptual
 
     common = frozenset({"allow_random_weights", "allow_download", "device"})
     parts: dict[str, tuple[Any, frozenset[str]]] = {n: (registry.get("guidance", n), common)
                                                     for n in registry.names("guidance")}
-    parts.update(clip=(CLIPGuidance, common), vgg=(Perceptual, common), edges=(EdgePerceptual, frozenset()))
+    parts.update(clip=(CLIPGuidance, common), vgg=(Perceptual, common), edges=(EdgePerceptual, frozenset()),
+                 lite_perceptual=(LitePerceptual, frozenset()))
     return parts
 
 

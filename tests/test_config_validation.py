@@ -148,9 +148,9 @@ OTHER_CASES = [
     ("encoding.resolution=1", "encoding.resolution=1: an integer in [2, 2048], or a list"),
     ("encoding.n_components=abc", "encoding.n_components='abc': an integer in [1, 256]"),
     ("backbone.dir_encoding.degree=9", "backbone.dir_encoding.degree=9: an integer in [1, 4]"),
-    ("data.resolution=-1", "data.resolution=-1: an integer in [8, 8192], or null"),
+    ("data.resolution=-1", "data.resolution=-1: one of auto, or an integer in [8, 8192], or null"),
     ("data.holdout_every=-2", "data.holdout_every=-2: an integer in [0, "),
-    ("data.kind=foo", "data.kind='foo': one of h3ds, llff, selfie"),
+    ("data.kind=foo", "data.kind='foo': one of h3ds, llff, nerfstudio, selfie"),
     ("backbone.name=foo", "backbone.name='foo': one of nerf, neus, volsdf"),
     ("guidance.clip.precision=fp8", "guidance.clip.precision='fp8': one of auto, fp32, bf16, fp16"),
     ("guidance.vgg.layers=[relu9_9]", "guidance.vgg.layers=['relu9_9']: a list of at least one value, each one of"),
@@ -197,7 +197,7 @@ def test_unknown_keys_suggest_the_closest_valid_key():
 
 
 def test_optional_keys_absent_from_conf_are_accepted():
-    c = schema.validate_config(cfg("+render.ndc_bound=2.0", "+stylize.lambda_eikonal=0.0"))
+    c = schema.validate_config(cfg("+render.ndc_bound=2.0"))
     assert c["render"]["ndc_bound"] == 2.0
 
 
@@ -214,6 +214,7 @@ def test_values_are_converted_only_where_their_meaning_changes():
     c["reconstruct"]["batch_rays"] = "512"
     c["prompt_augment"] = "false"
     c["prompt"] = 1984
+    c["data"]["resolution"] = 128
     out = schema.validate_config(c)
     assert out["reconstruct"]["batch_rays"] == 512 and out["prompt_augment"] is False and out["prompt"] == "1984"
     assert type(out["data"]["resolution"]) is int and type(out["reconstruct"]["lr"]) is float

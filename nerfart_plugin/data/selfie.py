@@ -363,8 +363,6 @@ def selfie_cache_meta(scene: Scene) -> Optional[dict]:
 
 
 #: COLMAP camera models of the shared camera (distortion of the radial/OpenCV ones is removed)
-CameraModel = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"]
-
 
 @register("data", "selfie")
 def load_selfie(
