@@ -95,6 +95,7 @@ def render_meshes(
     labels: Sequence[str] | None = None,
     off_screen: bool | None = None,
     n_samples: int = 50_000,
+    cameras: str | os.PathLike | dict | None = "auto",
 ) -> np.ndarray | None:
     """Show (or screenshot) one mesh, or two side by side with linked cameras.
 
@@ -107,6 +108,11 @@ def render_meshes(
         labels: subplot titles; default file names / ("source", "stylized").
         off_screen: force off-screen; default = True when screenshotting.
         n_samples: surface samples for the displacement distance.
+        cameras: the run's ``cameras.json`` (or its dict, see
+            :func:`nerfart_plugin.data.camera_path.viewer_cameras`): the view opens at the
+            capture's front camera with its up vector; "auto" looks for ``cameras.json`` in the
+            mesh's run folder (``<run>/mesh/x.ply`` -> ``<run>/cameras.json``); None: an
+            isometric view.
     Returns:
         The rendered image [H,W,3] uint8 when ``screenshot`` is given, else None.
     """
@@ -117,6 +123,7 @@ def render_meshes(
     if scalars == "displacement" and len(meshes) != 2:
         raise ConfigError("--scalars displacement needs two meshes: SOURCE STYLIZED.")
     tms = [m if isinstance(m, trimesh.Trimesh) else load_mesh(m) for m in meshes]
+    view = capture_view(cameras, meshes)
     if labels is None:
         labels = [
             Path(m).name if not isinstance(m, trimesh.Trimesh) else n for m, n in zip(meshes, ("source", "stylized"))
@@ -169,7 +176,10 @@ def render_meshes(
         else:
             pl.add_mesh(poly, color="lightgrey", smooth_shading=True)
         pl.add_text(str(labels[i]), font_size=10, color="black")
-        pl.camera_position = "iso"
+        if view is None:
+            pl.camera_position = "iso"
+        else:
+            pl.camera_position = view
         pl.reset_camera()
     if n == 2:
         pl.link_views()
@@ -188,6 +198,46 @@ def render_meshes(
     return np.asarray(img)[..., :3]
 
 
+def find_cameras(meshes: Sequence[str | os.PathLike | trimesh.Trimesh]) -> Path | None:
+    """The ``cameras.json`` of the run a mesh file belongs to (its folder or the folder above), if any."""
+    for m in meshes:
+        if isinstance(m, trimesh.Trimesh):
+            continue
+        for folder in (Path(m).resolve().parent, Path(m).resolve().parent.parent):
+            if (folder / "cameras.json").is_file():
+                return folder / "cameras.json"
+    return None
+
+
+def capture_view(cameras: str | os.PathLike | dict | None,
+                 meshes: Sequence[str | os.PathLike | trimesh.Trimesh] = ()) -> list | None:
+    """PyVista ``camera_position`` ``[eye, focal point, view up]`` at the capture's front camera, looking at
+    the cameras' look-at centre with the capture's up vector; None without cameras (isometric view)."""
+    import json
+
+    if cameras == "auto":
+        cameras = find_cameras(meshes)
+        if cameras is None:
+            log.info("no cameras.json beside the meshes: opening on an isometric view")
+            return None
+    if cameras is None:
+        return None
+    if not isinstance(cameras, dict):
+        path = Path(cameras)
+        try:
+            cameras = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            raise NerfArtError(f"Cannot read cameras {path}: {exc}. Pass the run's cameras.json (or --no-cameras).") from exc
+    try:
+        c2w = np.asarray(cameras["c2w"], dtype=np.float64)
+        eye = c2w[int(cameras["front"]), :3, 3]
+        return [tuple(eye), tuple(np.asarray(cameras["centre"], dtype=np.float64)),
+                tuple(np.asarray(cameras["up"], dtype=np.float64))]
+    except (KeyError, IndexError, TypeError, ValueError) as exc:
+        raise NerfArtError(f"cameras file is malformed ({exc}): it needs c2w, front, centre and up, as the "
+                           "pipeline writes them (cameras.json in the run folder).") from exc
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m nerfart_plugin.view",
@@ -203,6 +253,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scalars", default="auto", choices=SCALAR_MODES, help="colouring (default: auto)")
     parser.add_argument("--window-size", nargs=2, type=int, metavar=("W", "H"), help="window/screenshot size in pixels")
     parser.add_argument("--samples", type=int, default=50_000, help="surface samples for displacement distances")
+    parser.add_argument("--cameras", metavar="JSON", default="auto",
+                        help="the run's cameras.json (default: found beside the meshes): open on the capture's front view")
+    parser.add_argument("--no-cameras", action="store_true", help="ignore the capture's cameras (isometric view)")
     args = parser.parse_args(argv)
     if len(args.meshes) > 2:
         parser.error(f"at most 2 meshes, got {len(args.meshes)}")
@@ -214,6 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             scalars=args.scalars,
             window_size=tuple(args.window_size) if args.window_size else None,
             n_samples=args.samples,
+            cameras=None if args.no_cameras else args.cameras,
         )
     except NerfArtError as exc:
         parser.exit(2, f"error: {exc}\n")

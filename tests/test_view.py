@@ -31,6 +31,41 @@ def mesh_files(tmp_path_factory) -> dict[str, Path]:
     }
 
 
+def test_opens_on_the_captures_front_view(tmp_path, mesh_files):
+    """The viewer reads the run's cameras.json and looks from the capture's front camera with its up
+    vector (the shipped head used to open on the underside of the bust). First in this file: loading
+    a scene imports triton (through torch), which segfaults once VTK's EGL context exists."""
+    import json
+
+    from nerfart_plugin.data import load_scene
+    from nerfart_plugin.data.camera_path import viewer_cameras
+    from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+    from nerfart_plugin.view import capture_view, find_cameras
+
+    cams = viewer_cameras(load_scene("h3ds", DEFAULT_SCENE, resolution=32))
+    eye, centre, up = (np.asarray(v) for v in capture_view(cams))
+    rel = eye - centre
+    elevation = np.degrees(np.arcsin(rel @ up / np.linalg.norm(rel)))
+    assert abs(elevation) < 40 and cams["names"][cams["front"]] == "0030.jpg"  # a frontal view of the face
+    # found beside the meshes: <run>/mesh/x.ply -> <run>/cameras.json
+    run = tmp_path / "run"
+    (run / "mesh").mkdir(parents=True)
+    mesh = run / "mesh" / "bumpy.obj"
+    mesh.write_bytes(Path(mesh_files["bumpy"]).read_bytes())
+    (run / "cameras.json").write_text(json.dumps(cams))
+    assert find_cameras([mesh]) == run / "cameras.json"
+    # the view follows the cameras: front at +x and at -x give different pictures of the bump at +x
+    def looking_from(x: float) -> dict:
+        c = {"c2w": [[[0, 0, -np.sign(x), x], [0, 1, 0, 0], [np.sign(x), 0, 0, 0]]], "front": 0,
+             "centre": [0, 0, 0], "up": [0, -1, 0]}
+        return c
+    a = render_meshes([mesh], screenshot=tmp_path / "a.png", window_size=SIZE, cameras=looking_from(2.0))
+    b = render_meshes([mesh], screenshot=tmp_path / "b.png", window_size=SIZE, cameras=looking_from(-2.0))
+    assert np.abs(a.astype(float) - b.astype(float)).mean() > 2
+    with pytest.raises(Exception, match="malformed"):
+        render_meshes([mesh], screenshot=tmp_path / "c.png", window_size=SIZE, cameras={"front": 0})
+
+
 def test_one_mesh_screenshot_not_blank_and_differs(tmp_path, mesh_files):
     a = render_meshes([mesh_files["sphere"]], screenshot=tmp_path / "a.png", window_size=SIZE)
     b = render_meshes([mesh_files["torus"]], screenshot=tmp_path / "b.png", window_size=SIZE)
@@ -116,3 +151,4 @@ def test_cli_subprocess(tmp_path, mesh_files):
         timeout=120,
     )
     assert bad.returncode == 2 and "nope.ply" in bad.stderr
+

@@ -117,3 +117,35 @@ def orbit_path(scene: "Scene", n_frames: int = 120) -> torch.Tensor:
     else:
         path = _orbit(c2w, n_frames)
     return torch.from_numpy(path).float()
+
+
+def front_camera(c2w: np.ndarray) -> int:
+    """Index of the capture's front view in ``c2w`` [N,3,4|4,4] (OpenCV): the camera nearest in
+    azimuth (around the cameras' up vector) to their mean direction from the look-at centre, when
+    the cameras have one (resultant length > 0.3, e.g. a selfie sweep); else camera 0, the
+    capture's first view (an all-around capture has no preferred side)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    centre = look_at_centre(c2w)
+    up = -c2w[:, :3, 1].mean(0)
+    up = up / max(np.linalg.norm(up), 1e-12)
+    rel = c2w[:, :3, 3] - centre
+    horiz = rel - (rel @ up)[:, None] * up
+    unit = horiz / np.maximum(np.linalg.norm(horiz, axis=1, keepdims=True), 1e-12)
+    mean = unit.mean(0)
+    if np.linalg.norm(mean) <= 0.3:
+        return 0
+    return int(np.argmax(unit @ (mean / np.linalg.norm(mean))))
+
+
+def viewer_cameras(scene: "Scene") -> dict:
+    """What a mesh viewer needs to open on the capture's own view, as plain data (JSON-ready):
+    every camera (``c2w`` [N,3,4] OpenCV, ``K``, image size, names) in the scene's normalized frame
+    (the frame of the exported meshes), the look-at ``centre``, the world ``up`` vector, the
+    ``front`` camera index (:func:`front_camera`) and the ``normalization`` T (x_norm = T x_orig)."""
+    c2w = scene.c2w.detach().cpu().double().numpy()[:, :3, :4]
+    up = -c2w[:, :3, 1].mean(0)
+    return {"frame": "normalized", "c2w": c2w.tolist(), "K": scene.K.detach().cpu().double().numpy().tolist(),
+            "width": int(scene.width), "height": int(scene.height), "names": list(scene.image_names),
+            "centre": look_at_centre(c2w).tolist(), "up": (up / max(np.linalg.norm(up), 1e-12)).tolist(),
+            "front": front_camera(c2w), "capture": scene.capture,
+            "normalization": scene.normalization.detach().cpu().double().numpy().tolist()}
