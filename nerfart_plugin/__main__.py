@@ -25,6 +25,7 @@ from omegaconf import DictConfig
 
 from nerfart_plugin.config_paths import config_dir
 from nerfart_plugin.overrides import PrimaryConfig, normalize_overrides  # noqa: F401  (public: used by tests)
+from nerfart_plugin.plugins import searchpath_overrides
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -95,6 +96,7 @@ def main() -> None:
 
     try:
         argv = normalize_overrides(sys.argv[1:])
+        argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.plugins)
         check_output_root(argv)
     except ConfigError as exc:  # before Hydra configures logging: Python's last-resort handler prints it to stderr
         log.error("ConfigError: %s", exc)

@@ -10,7 +10,8 @@ Usage::
     field = registry.build("backbone", "neus", **cfg)
 
 Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``,
-``exporter``.
+``exporter``. Other distributions add components through entry points
+(:mod:`nerfart_plugin.plugins`).
 """
 
 from __future__ import annotations
@@ -49,8 +50,11 @@ def register(kind: str, name: str) -> Callable[[T], T]:
 
 
 def _load(kind: str) -> dict[str, Any]:
+    from nerfart_plugin.plugins import load_components
+
     for mod in _PROVIDERS.get(kind, ()):
         importlib.import_module(mod)
+    load_components()  # third-party components (entry points, see nerfart_plugin.plugins)
     return _REGISTRY.get(kind, {})
 
 
