@@ -280,8 +280,13 @@ def remove_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trime
     return out
 
 
-def export_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
-    """Write ``mesh`` as PLY (binary, with vertex colours and attributes), OBJ or GLB, atomically."""
+def export_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, meta: dict[str, Any] | None = None) -> Path:
+    """Write ``mesh`` as PLY (binary, with vertex colours and attributes), OBJ or GLB, atomically.
+
+    ``meta`` (e.g. :func:`nerfart_plugin.export.frames.frame_metadata`: which frame the vertices
+    are in) goes into the file: ``comment nerfart <json>`` header lines in PLY, ``# nerfart <json>``
+    lines in OBJ, the mesh's ``extras`` in GLB.
+    """
     path = Path(path)
     file_type = path.suffix.lower().lstrip(".")
     if file_type not in MESH_FORMATS:
@@ -291,8 +296,28 @@ def export_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike) -> Path:
         )
     try:
         with atomic_path(path) as tmp:
-            mesh.export(tmp, file_type=file_type)
+            Path(tmp).write_bytes(_encode(mesh, file_type, meta))
     except OSError as exc:
         raise NerfArtError(f"Could not write mesh {path}: {exc}. Check the folder is writable.") from exc
     log.info("Wrote %s (%d vertices, %d faces)", path, len(mesh.vertices), len(mesh.faces))
     return path
+
+
+def _encode(mesh: trimesh.Trimesh, file_type: str, meta: dict[str, Any] | None) -> bytes:
+    """The file's bytes, with ``meta`` written where each format keeps free-form notes."""
+    import json
+
+    if not meta:
+        data = mesh.export(file_type=file_type)
+        return data if isinstance(data, bytes) else data.encode()
+    line = json.dumps(meta, separators=(",", ":"))
+    if file_type == "glb":
+        mesh = mesh.copy()
+        mesh.metadata["nerfart"] = meta
+        return mesh.export(file_type="glb")
+    data = mesh.export(file_type=file_type)
+    data = data if isinstance(data, bytes) else data.encode()
+    if file_type == "ply":  # header comments go after the "format" line
+        head, rest = data.split(b"\n", 2)[:2], data.split(b"\n", 2)[2]
+        return b"\n".join([*head, f"comment nerfart {line}".encode(), rest])
+    return f"# nerfart {line}\n".encode() + data
