@@ -41,3 +41,18 @@ def test_imagenet_guide_raises_the_judge_on_heldout_views(tmp_path: Path) -> Non
     before, after = judge["source"]["mean_target_prob"], judge["stylized"]["mean_target_prob"]
     assert after > 10 * before and after > 0.01, (before, after, judge["stylized"]["per_view"])
     assert "VERIFICATION" in m["WARNING"] and m["guidance"] == "imagenet"
+
+
+def test_the_judge_runs_with_any_guidance_when_the_prompt_names_a_class(tmp_path: Path) -> None:
+    from pipeline_helpers import tiny_cfg
+
+    from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+
+    for prompt, judged in (("zebra", True), ("red", False)):
+        cfg = tiny_cfg(tmp_path / prompt, DEFAULT_SCENE, "guidance=toy", f"prompt={prompt}", "reconstruct.steps=5",
+                       "stylize.steps=2", "export.enabled=false")
+        m = json.loads((Path(run(cfg)["stylization"]["dir"]) / "metrics.json").read_text())
+        if judged:
+            assert m["judge"]["target_class"] == "zebra" and len(m["judge"]["stylized"]["per_view"]) >= 1
+        else:
+            assert "names no ImageNet class" in m["judge"]["skipped"]
