@@ -76,8 +76,6 @@ _NO_JOB_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", 
 def check_output_root(argv: list[str]) -> None:
     """ConfigError before Hydra writes its run folder under ``output_root`` when that cannot be written
     (a read-only folder, a file in the way, a missing parent that cannot be created, a full disk)."""
-    from omegaconf import OmegaConf
-
     from nerfart_plugin.overrides import override_value
     from nerfart_plugin.utils.io import check_writable_dir
 
@@ -85,7 +83,9 @@ def check_output_root(argv: list[str]) -> None:
         return
     root = override_value(argv, "output_root")
     if root is None:
-        root = OmegaConf.load(config_dir() / "config.yaml").get("output_root")
+        from nerfart_plugin.schema import RunConfig
+
+        root = RunConfig.model_fields["output_root"].default
     if isinstance(root, str) and "${" not in root:
         check_writable_dir(root, "output_root")
 

@@ -41,7 +41,8 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
         "+render.num_samples=8",  # a nested key with a default
         "++stage=all",  # force-add: Hydra's own
         "+newkey=1",  # no default: Hydra adds it (the schema then refuses it clearly)
-        "+render.ndc_bound=2.0",  # no default: added (an optional key of the schema)
+        "+render.ndc_bound=2.0",  # a schema key (default 1.5): folded
+        "+render.new_key=1",  # no default: Hydra adds it (the schema then refuses it clearly)
         "+data@extra=h3ds",  # a second package of a group: Hydra adds it
         "-m",
         "stage=all",
@@ -54,7 +55,8 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
         "render.num_samples=8",
         "++stage=all",
         "+newkey=1",
-        "+render.ndc_bound=2.0",
+        "render.ndc_bound=2.0",
+        "+render.new_key=1",
         "+data@extra=h3ds",
         "-m",
         "stage=all",
@@ -203,6 +205,9 @@ def test_help_lists_groups():
         )  # Hydra's "== Configuration groups ==" section
     assert "backbone: nerf, neus, volsdf" in proc.stdout
     assert "stage=reconstruct" in proc.stdout
+    # every setting of the schema with its default and meaning
+    assert "reconstruct.batch_rays=512: random training rays per step" in proc.stdout
+    assert "experiment.lambda_eikonal=0.1:" in proc.stdout
 
 
 # ---------------------------------------------------------------------- errors
@@ -234,7 +239,7 @@ def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     proc = _cli("+render.new_key=1", "+render.num_sampels=8", "stage=reconstruct", f"output_root={tmp_path}")
     _assert_clear_error(proc, "render.new_key=1: unknown setting", "did you mean render.num_samples?",
                         "2 invalid settings")
-    cfg = _job_cfg("+render.ndc_bound=2.0", "+backbone=neus")  # an optional key: Hydra adds it, the schema accepts it
+    cfg = _job_cfg("+render.ndc_bound=2.0", "+backbone=neus")  # keys with a default: the + is folded
     assert cfg["render"]["ndc_bound"] == 2.0 and cfg["backbone"]["name"] == "neus"
 
 

@@ -40,38 +40,58 @@ def error_of(*overrides: str) -> str:
     return str(info.value)
 
 
-# ---------------------------------------------------------------------- schema defaults == conf/
-def _check_defaults(model: type[BaseModel], yaml_section: dict, where: str) -> None:
-    defaults = model().model_dump()
-    for key, value in yaml_section.items():
-        assert key in defaults, f"{where}.{key} is in conf/ but not in schema.{model.__name__}"
-        sub = schema._model_in(model.model_fields[key].annotation)
-        if sub is not None and isinstance(value, dict):
-            _check_defaults(sub, value, f"{where}.{key}")
-        else:
-            assert defaults[key] == value, f"{where}.{key}: schema default {defaults[key]!r} != conf/ {value!r}"
-    for key in set(defaults) - set(yaml_section):
-        annotation = model.model_fields[key].annotation
-        if schema._model_in(annotation) or typing.get_origin(annotation) is dict:
-            continue  # a section: compared on its own
-        assert defaults[key] is None, \
-            f"{where}.{key} is not in conf/: its schema default must be null (optional key), not {defaults[key]!r}"
+# ---------------------------------------------------------------------- the schema is the one source of defaults
+def _schema_keys(model: type[BaseModel], prefix: str = "") -> set[str]:
+    keys = set()
+    for name, info in model.model_fields.items():
+        if typing.get_origin(info.annotation) is dict:
+            continue  # a component section: its config group
+        sub = schema._model_in(info.annotation)
+        keys |= _schema_keys(sub, f"{prefix}{name}.") if sub is not None else {f"{prefix}{name}"}
+    return keys
 
 
-def test_schema_defaults_are_the_yaml_defaults_section_by_section():
+def _yaml_keys(node: Any, prefix: str = "") -> set[str]:
+    if not isinstance(node, dict):
+        return {prefix[:-1]}
+    return set().union(*(_yaml_keys(v, f"{prefix}{k}.") for k, v in node.items())) if node else set()
+
+
+def test_yaml_repeats_no_schema_default():
+    """conf/config.yaml, experiment=full and preset=balanced set nothing the schema declares."""
+    declared = _schema_keys(schema.RunConfig)
     raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "config.yaml"))
-    raw.pop("defaults")
-    raw.pop("hydra")
-    composed = cfg()  # the default composition (preset=balanced) must agree too
-    for source in (raw, composed):
-        for section, model in schema.SECTIONS.items():
-            if section in source:
-                _check_defaults(model, source[section], section)
-        run = {k: v for k, v in source.items() if k not in schema.SECTIONS and not isinstance(v, dict)}
-        _check_defaults(schema.RunConfig, run, "(top level)")
-    experiment = OmegaConf.to_container(OmegaConf.load(config_dir() / "experiment" / "full.yaml"))
-    _check_defaults(schema.ExperimentConfig, experiment, "experiment")
+    assert raw["defaults"][:2] == [schema.SCHEMA_NODE, "_self_"]
+    raw = {k: v for k, v in raw.items() if k not in ("defaults", "hydra")}
+    assert not _yaml_keys(raw) & declared, "conf/config.yaml repeats schema defaults"
+    for name in ("experiment/full.yaml", "preset/balanced.yaml"):
+        assert not OmegaConf.to_container(OmegaConf.load(config_dir() / name)), f"conf/{name} sets values"
+
+
+def test_composed_defaults_are_the_schema_defaults():
+    composed = cfg()
+    defaults = schema.RunConfig().model_dump(mode="json", exclude=set(schema.COMPONENTS))
+    assert {k: composed[k] for k in defaults} == defaults
     assert schema.validate_config(composed) == composed  # validation changes nothing in the defaults
+
+
+def test_help_lists_every_setting_with_its_description():
+    text = schema.help_text()
+    for key in _schema_keys(schema.RunConfig):
+        assert f"  {key}=" in text, key
+    assert "reconstruct.val_every=1000: steps between validations" in text
+
+
+def test_cache_keys_leave_out_only_what_does_not_change_results():
+    c = schema.RunConfig.model_validate(cfg())
+    assert "chunk" not in schema.result_settings(c.render) and "num_samples" in schema.result_settings(c.render)
+    assert {"precision", "devices", "num_nodes", "strategy"} <= set(schema.result_settings(c.trainer))
+    assert "log_every_n_steps" not in schema.result_settings(c.trainer)
+    rc = schema.result_settings(c.reconstruct)
+    assert not {"val_every", "val_views", "checkpoint_every"} & set(rc) and "steps" in rc
+    sc = schema.result_settings(c.stylize)
+    assert not {"render_every", "checkpoint_every", "video_frames", "video_fps"} & set(sc) and "tau" in sc
+    assert "subject" not in schema.component_result_settings("data", cfg()["data"])
 
 
 GROUP_VARIANTS = [(), ("data=llff", "data.path=x"), ("data=selfie", "data.path=x")] + [
@@ -196,9 +216,9 @@ def test_unknown_keys_suggest_the_closest_valid_key():
     assert "guidance.clip" in error_of("+guidance.clp={model: x}")
 
 
-def test_optional_keys_absent_from_conf_are_accepted():
-    c = schema.validate_config(cfg("+render.ndc_bound=2.0"))
-    assert c["render"]["ndc_bound"] == 2.0
+def test_every_key_the_code_reads_has_a_default():
+    c = schema.validate_config(cfg("render.ndc_bound=2.0", "experiment.lambda_eikonal=0.3"))
+    assert c["render"]["ndc_bound"] == 2.0 and c["experiment"]["lambda_eikonal"] == 0.3
 
 
 def test_every_violation_in_one_error():

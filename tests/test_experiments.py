@@ -34,18 +34,6 @@ def test_experiment_lambdas(name: str, changed: dict) -> None:
     assert exp.directional == ("absolute" if name == "absolute_dir" else "relative")
 
 
-def test_paper_preset_is_the_papers_settings() -> None:
-    cfg = _compose("preset=paper")
-    assert cfg.encoding.name == "frequency"
-    assert cfg.render.num_samples == 192
-    assert cfg.data.resolution is None  # full-resolution views
-
-
-def test_presets_order_by_cost() -> None:
-    samples = [_compose(f"preset={p}").render.num_samples for p in ("draft", "balanced", "paper")]
-    assert samples == sorted(samples) and len(set(samples)) == 3
-
-
 def test_command_line_beats_preset() -> None:
     assert _compose("preset=paper", "render.num_samples=7").render.num_samples == 7
 
