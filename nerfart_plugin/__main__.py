@@ -39,7 +39,6 @@ def _app(cfg: DictConfig) -> float | None:
     """
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
-    from omegaconf import OmegaConf
 
     from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
     from nerfart_plugin.pipeline import run
@@ -47,7 +46,7 @@ def _app(cfg: DictConfig) -> float | None:
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
-        results = run(cfg)
+        results = run(cfg, output_dir=Path(HydraConfig.get().runtime.output_dir))
     except (RunInterrupted, KeyboardInterrupt) as exc:
         # Ctrl-C: the run folder is resumable; say so and stop (a sweep too), exit code 130 as for SIGINT
         message = str(exc) if isinstance(exc, RunInterrupted) else "interrupted; run the same command again to continue"
@@ -62,7 +61,7 @@ def _app(cfg: DictConfig) -> float | None:
             return None
         sys.exit(2)
     try:
-        return objective(results, OmegaConf.select(cfg, "objective", default="auto"))
+        return objective(results, cfg.objective)
     except ConfigError as exc:
         log.debug("no sweep objective: %s", exc)
         return None

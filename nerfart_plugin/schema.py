@@ -49,7 +49,7 @@ from nerfart_plugin.errors import ConfigError
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
     "TrainerConfig", "ExperimentConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "validate_config", "parse_config",
-    "component_model", "defaults_node", "register_schema", "result_settings", "to_plain", "help_text",
+    "component_model", "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
 ]
 
 #: samples (rays x samples per ray) of one training step with grad: far beyond any GPU's memory above this
@@ -663,10 +663,11 @@ class GuidanceCommon(BaseModel):
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
 
-    name: str
-    allow_random_weights: bool = False
-    allow_download: Optional[bool] = None
-    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = None
+    name: str = Setting("clip", description="the guidance: clip | imagenet | toy (the registry's guidance names)")
+    allow_random_weights: bool = Setting(False, description="tests only: random CLIP/VGG weights (outputs stamped)")
+    allow_download: Optional[bool] = Setting(None, description="fetch missing weights; null: env NERFART_ALLOW_DOWNLOAD")
+    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = Setting(
+        None, description="Eq. 9 features; null: vgg for clip, edges for toy, imagenet for imagenet")
 
 
 def _guidance_parts() -> dict[str, tuple[Any, frozenset[str]]]:
@@ -885,3 +886,22 @@ def help_template() -> str:
             "(group=option)\n\n$APP_CONFIG_GROUPS\n\n== Settings (key=default: meaning) ==\n"
             "Override any of them with key=value; the component groups (data, backbone, encoding, guidance) take\n"
             "the settings of the component they name (see --cfg job).\n\n" + text + "\n\n${hydra.help.footer}\n")
+
+
+SectionT = typing.TypeVar("SectionT", bound=BaseModel)
+
+
+def section(model: type[SectionT], value: Any, prefix: Optional[str] = None) -> SectionT:
+    """``value`` as the typed section ``model``: an instance as it is, a mapping (or DictConfig) validated
+    with the defaults for what it leaves out, None as the defaults. Raises ConfigError (each bad key, named
+    under ``prefix``: by default the section's name)."""
+    if isinstance(value, model):
+        return value
+    values = to_plain(value)
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        if prefix is None:
+            prefix = next((k for k, m in SECTIONS.items() if m is model), "")
+        raise_issues(issues_from(exc, model, values, prefix))
+        raise  # pragma: no cover - raise_issues raised

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from nerfart_plugin.__main__ import normalize_overrides
 from nerfart_plugin.config_paths import config_dir, group_options
 
-from pipeline_helpers import run_cli
+from pipeline_helpers import composed, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 GROUPS = ("backbone", "data", "encoding", "experiment", "guidance", "preset")
@@ -106,12 +106,9 @@ def test_prompts_are_quoted_for_hydra_and_arrive_intact():
 
 
 def _composed_value(arg: str, key: str):
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=[arg])
-    return OmegaConf.to_container(cfg, resolve=True)[key]
+    return OmegaConf.to_container(composed(arg), resolve=True)[key]
 
 
 @settings(max_examples=300, deadline=None)

@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
@@ -20,13 +19,12 @@ from nerfart_plugin.config_paths import config_dir, group_options
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.pipeline import Pipeline, validate_config
 
-from pipeline_helpers import run_cli
+from pipeline_helpers import composed, run_cli
 
 
 @functools.lru_cache(maxsize=None)
 def _composed(*overrides: str) -> dict:
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return OmegaConf.to_container(compose("config", overrides=list(overrides)), resolve=True)
+    return OmegaConf.to_container(composed(*overrides), resolve=True)
 
 
 def cfg(*overrides: str) -> dict:
@@ -335,24 +333,23 @@ def _build_cheap_components(c: dict, tmp: Path) -> None:
     from nerfart_plugin.export import MeshExtractor
     from nerfart_plugin.fields import OccupancyGrid, build_field
     from nerfart_plugin.guidance import build_guidance, build_perceptual
-    from nerfart_plugin.pipeline import _trainer
+    from nerfart_plugin.fit import build_trainer
 
     if _small(c):
-        build_field(c["backbone"], c["encoding"], bound=float(c["render"].get("ndc_bound") or 1.0))
+        build_field(c["backbone"], c["encoding"], bound=float(c["render"]["ndc_bound"]))
     occ = c["render"]["occupancy"]
     OccupancyGrid(resolution=min(int(occ["resolution"]), 32), threshold=occ["threshold"],
                   update_every=occ["update_every"], warmup_steps=occ["warmup_steps"])
     ec = c["export"]
     MeshExtractor(resolution=ec["resolution"], chunk=ec["chunk"], level=ec["level"],
                   remove_floaters=ec["remove_floaters"])
-    SceneDataModule({**c["data"], "background_color": c["data"].get("background_color",
-                                                                    c["render"]["background_color"])})
+    SceneDataModule({"background_color": c["render"]["background_color"], **c["data"]})
     if c["guidance"]["name"] == "toy":
         build_guidance(c["guidance"])
         build_perceptual(c["guidance"])
     import torch
 
-    _trainer(tmp, int(c["reconstruct"]["steps"]), torch.device("cpu"), [], c["trainer"])
+    build_trainer(int(c["reconstruct"]["steps"]), torch.device("cpu"), c["trainer"], run_dir=tmp)
 
 
 @settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow,

@@ -50,7 +50,7 @@ def test_tiny_fit_lowers_loss(backbone: str, encoding: dict, occupancy: bool, fa
             grid.update(field, step, generator=gen)
         batch = _sphere_rays(128, gen)
         out = r(batch, perturb=True, generator=gen)
-        loss = (out["rgb"] - batch["rgb"]).square().mean() + 0.1 * out.get("eikonal", 0.0)
+        loss = (out["rgb"] - batch["rgb"]).square().mean() + 0.1 * sum(out["regularizers"].values(), torch.zeros(()))
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from nerfart_plugin.config_paths import config_dir
 from nerfart_plugin.fields import build_field
+from pipeline_helpers import composed
 
 
 def _cfg(*overrides: str) -> dict:
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return OmegaConf.to_container(compose("config", overrides=list(overrides)), resolve=True)
+    return OmegaConf.to_container(composed(*overrides), resolve=True)
 
 
 def test_paper_preset_is_the_papers_settings() -> None:

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-from nerfart_plugin.errors import CheckpointError, ConfigError, RunInterrupted, RunLockedError
+from nerfart_plugin.errors import CheckpointError, ConfigError, NerfArtError, RunInterrupted, RunLockedError
 from nerfart_plugin.pipeline import Pipeline
 from nerfart_plugin.utils.lock import lock_path
 
@@ -43,6 +43,19 @@ def nerf_final(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("nerf")
     res = Pipeline(tiny_cfg(root, DEFAULT_SCENE, *RECON)).run()
     return Path(res["reconstruction"]["dir"]) / "final.ckpt"
+
+
+def test_load_run_reads_a_finished_reconstruction_back(nerf_final):
+    from nerfart_plugin.factories import load_run
+
+    run = load_run(nerf_final.parent)
+    assert run.cfg.backbone["name"] == "nerf" and run.cfg.reconstruct.steps == 12 and "psnr" in run.metrics
+    assert run.setup.bound == 1.0 and run.checkpoint == nerf_final
+    rays = {"rays_o": torch.tensor([[0.0, 0.0, -3.0]]), "rays_d": torch.tensor([[0.0, 0.0, 1.0]]),
+            "near": torch.tensor([0.5]), "far": torch.tensor([5.0])}
+    assert torch.isfinite(run.renderer.render_chunked(rays)["rgb"]).all()
+    with pytest.raises(NerfArtError, match="not a run folder"):
+        load_run(nerf_final.parent.parent)
 
 
 def _step(ckpt: Path) -> int:

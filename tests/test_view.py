@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.export.analytic import SphereSDF, TorusSDF, UnionSDF
+from analytic_fields import SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
 from nerfart_plugin.view import load_mesh, main, render_meshes
 
