@@ -9,8 +9,7 @@ Usage::
 
     field = registry.build("backbone", "neus", **cfg)
 
-Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``,
-``exporter``.
+Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``.
 """
 
 from __future__ import annotations
@@ -31,7 +30,6 @@ _PROVIDERS: dict[str, tuple[str, ...]] = {
     "encoding": ("nerfart_plugin.fields",),
     "data": ("nerfart_plugin.data",),
     "guidance": ("nerfart_plugin.guidance", "nerfart_plugin.guidance.imagenet"),
-    "exporter": ("nerfart_plugin.export",),
 }
 
 

@@ -38,7 +38,7 @@ from nerfart_plugin.data.images import (
     match_masks,
     read_image_set,
 )
-from nerfart_plugin.data.normalize import detect_capture
+from nerfart_plugin.data.normalize import detect_capture, near_far
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.registry import register
@@ -207,9 +207,7 @@ def load_h3ds(
     capture, reason = detect_capture(c2w, masks)
     layout = f"views from {image_dir.name}/" + (f", mattes from {mask_dir.name}/" if mask_paths else "")
     notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}; {layout}")
-    dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
-    near = np.maximum(dist - 1.0, 0.05)
-    far = dist + 1.0
+    near, far = near_far("object", c2w)  # unit sphere from scale_mat: the sphere around each camera
     return make_scene(
         images=images,
         masks=masks,

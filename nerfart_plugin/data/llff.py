@@ -37,7 +37,7 @@ from nerfart_plugin.data.images import (
     read_image_set,
     image_size,
 )
-from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_cameras
+from nerfart_plugin.data.normalize import apply_similarity, detect_capture, near_far, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.registry import register
@@ -224,11 +224,7 @@ def load_llff(
         T = unit_sphere_from_cameras(pb.c2w, near=pb.bounds[:, 0])
         notes.append(f"capture={capture} ({reason}); look-at region scaled into the unit sphere")
     c2w = apply_similarity(T, pb.c2w)
-    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    near, far = pb.bounds[:, 0] * s, pb.bounds[:, 1] * s
-    if capture != "forward_facing":
-        near = np.maximum(near * 0.9, 1e-3)
-        far = far * 1.1
+    near, far = near_far(capture, c2w, pb.bounds, T)
     return make_scene(
         images=images,
         masks=masks,

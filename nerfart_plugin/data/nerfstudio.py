@@ -78,7 +78,8 @@ from nerfart_plugin.data.images import (
     target_size,
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
-from nerfart_plugin.data.normalize import apply_similarity, detect_capture, similarity, unit_sphere_from_cameras
+from nerfart_plugin.data.normalize import (apply_similarity, detect_capture, near_far, similarity,
+                                           unit_sphere_from_cameras)
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data.undistort import UndistortMaps, opencv_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
@@ -500,15 +501,6 @@ def _common_size(frames: list[Frame]) -> tuple[int, int]:
     return first.camera.w, first.camera.h
 
 
-def _near_far(c2w: np.ndarray, T: np.ndarray, bounds: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-facing: the box depth bounds in normalized units; else the unit sphere along each ray."""
-    if bounds is not None:
-        s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-        return bounds[:, 0] * s, bounds[:, 1] * s
-    dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
-    return np.maximum(dist - 1.0, 0.05), dist + 1.0
-
-
 def _background(background: Optional[Sequence[float]]) -> tuple[float, float, float]:
     if background is None:
         return (1.0, 1.0, 1.0)
@@ -567,7 +559,7 @@ def load_nerfstudio(
     c2w0 = np.stack([f.c2w for f in frames])
     capture, T, bounds = normalization(c2w0, masks, scene_box(meta, files[0][1], notes), notes, capture)
     c2w = apply_similarity(T, c2w0[:, :3, :4])
-    near, far = _near_far(c2w, T, bounds)
+    near, far = near_far(capture, c2w, bounds, T)
     K = np.stack([f.camera.K for f in frames])
     K[:, 0, :] *= W1 / W0
     K[:, 1, :] *= H1 / H0

@@ -45,7 +45,7 @@ from nerfart_plugin.data.images import (
     target_size,
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
-from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
+from nerfart_plugin.data.normalize import apply_similarity, detect_capture, near_far, unit_sphere_from_points
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
@@ -486,13 +486,7 @@ def load_selfie(
     else:
         T = unit_sphere_from_points(model.points, model.c2w)
     c2w = apply_similarity(T, model.c2w)
-    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    if capture == "object":
-        dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
-        near, far = np.maximum(dist - 1.0, 0.05), dist + 1.0
-    else:
-        near = np.maximum(bounds[:, 0] * s * (1.0 if capture == "forward_facing" else 0.9), 1e-3)
-        far = np.maximum(bounds[:, 1] * s * (1.0 if capture == "forward_facing" else 1.1), near * 1.01)
+    near, far = near_far(capture, c2w, bounds, T)
     notes.append(f"capture={capture} ({reason})")
     return make_scene(
         images=images,
