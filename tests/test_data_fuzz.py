@@ -152,6 +152,7 @@ def test_fuzz_transforms_json(meta, garbage, mode):
             s = load_scene("nerfstudio", d, resolution=None)
         except (DataError, ConfigError):
             return
-        assert s.num_images >= 1 and s.images.shape[1:] == (6, 8, 3)
+        # every frame of one size (a scene of the 6x6 b.png alone is fine; mixed sizes are refused)
+        assert s.num_images >= 1 and s.images.shape[1:] in ((6, 8, 3), (6, 6, 3))
         for t in (s.images, s.c2w, s.K, s.near, s.far, s.normalization):
             assert torch.isfinite(t).all()
