@@ -65,6 +65,7 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
     ]
 
 
+@pytest.mark.slow
 def test_plus_folding_follows_the_selected_group_options():
     # data.factor has a default in data=llff only; data.fps in data=selfie only
     assert normalize_overrides(["data=llff", "+data.factor=4", "+data.fps=3"]) == [
@@ -97,6 +98,7 @@ PROMPTS = [
 ]
 
 
+@pytest.mark.slow
 def test_prompts_are_quoted_for_hydra_and_arrive_intact():
     for text in PROMPTS:
         for key in ("prompt", "source_prompt"):
@@ -111,6 +113,7 @@ def _composed_value(arg: str, key: str):
     return OmegaConf.to_container(composed(arg), resolve=True)[key]
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(text=st.text(max_size=40))
 def test_any_text_survives_hydra_quoting(text):
@@ -124,6 +127,7 @@ def test_any_text_survives_hydra_quoting(text):
     assert OmegaConf.to_container(OmegaConf.create({"prompt": value}), resolve=True)["prompt"] == text
 
 
+@pytest.mark.slow
 def test_hydra_syntax_in_prompt_values_keeps_its_meaning():
     assert normalize_overrides(["prompt='a,b'"]) == ["prompt='a,b'"]  # quoted by the user: one prompt
     assert normalize_overrides(["-m", "prompt=choice(Joker,Pixar)"]) == ["-m", "prompt=choice(Joker,Pixar)"]
@@ -147,6 +151,7 @@ def test_repeated_prompts_are_one_sweep_each_taken_literally():
         normalize_overrides(["+prompt=Joker", "+prompt=Pixar"])
 
 
+@pytest.mark.slow
 def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
     """A real 2-job sweep: each job gets its prompt intact (they then stop at validation: no reconstruction)."""
     out = tmp_path / "sweep"
@@ -159,6 +164,7 @@ def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
     assert "source_checkpoint" in (jobs[1] / "result.json").read_text()  # the job ran and failed clearly
 
 
+@pytest.mark.slow
 def test_cli_non_ascii_and_quote_prompts():
     cfg = _job_cfg("+prompt=Van Gogh's Starry Night", "source_prompt=a photo (of a face), smiling: 日本")
     assert cfg["prompt"] == "Van Gogh's Starry Night"
@@ -171,11 +177,13 @@ def test_group_options_match_the_conf_folder():
 
 
 # ---------------------------------------------------------------------- --cfg job
+@pytest.mark.slow
 def test_cfg_job_plus_backbone_and_prompt():
     cfg = _job_cfg("+backbone=neus", "+prompt=Joker")
     assert cfg["backbone"]["name"] == "neus" and cfg["prompt"] == "Joker"
 
 
+@pytest.mark.slow
 def test_cfg_job_quoted_prompt_and_plain_backbone():
     cfg = _job_cfg(
         "+backbone=volsdf", "+prompt=Tolkien Elf"
@@ -185,6 +193,7 @@ def test_cfg_job_quoted_prompt_and_plain_backbone():
     assert cfg["backbone"]["name"] == "volsdf" and cfg["prompt"] is None
 
 
+@pytest.mark.slow
 def test_cfg_job_default_backbone_is_volsdf():
     cfg = _job_cfg()
     assert cfg["backbone"]["name"] == "volsdf" and cfg["stage"] == "all"
@@ -193,6 +202,7 @@ def test_cfg_job_default_backbone_is_volsdf():
     )
 
 
+@pytest.mark.slow
 def test_help_lists_groups():
     proc = _cli("--help")
     assert proc.returncode == 0
@@ -208,6 +218,7 @@ def test_help_lists_groups():
 
 
 # ---------------------------------------------------------------------- errors
+@pytest.mark.slow
 def test_unknown_backbone_group_option_lists_options():
     proc = _cli("backbone=foo")
     assert proc.returncode != 0
@@ -226,12 +237,14 @@ def _assert_clear_error(proc: subprocess.CompletedProcess, *needles: str) -> Non
         assert n in out, (n, out[-2000:])
 
 
+@pytest.mark.slow
 def test_unknown_backbone_name_is_a_config_error():
     _assert_clear_error(
         _cli("backbone.name=foo", "stage=reconstruct"), "'foo'", "nerf, neus, volsdf"
     )
 
 
+@pytest.mark.slow
 def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     proc = _cli("+render.new_key=1", "+render.num_sampels=8", "stage=reconstruct", f"output_root={tmp_path}")
     _assert_clear_error(proc, "render.new_key=1: unknown setting", "did you mean render.num_samples?",
@@ -240,6 +253,7 @@ def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     assert cfg["render"]["ndc_bound"] == 2.0 and cfg["backbone"]["name"] == "neus"
 
 
+@pytest.mark.slow
 def test_blank_prompt_and_bad_stage_are_clear_errors():
     _assert_clear_error(
         _cli("prompt=  ", "stage=stylize", "guidance=toy"), "prompt", "empty"

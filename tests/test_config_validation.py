@@ -204,6 +204,7 @@ def test_grid_and_other_constructor_checks_are_config_errors():
         build_field({"name": "volsdf", "beta_init": 1e-5, "beta_min": 1e-4}, {"name": "grid", "resolution": 8})
 
 
+@pytest.mark.slow
 def test_unknown_keys_suggest_the_closest_valid_key():
     assert "did you mean render.num_samples?" in error_of("+render.num_sampels=3")
     assert "did you mean seed?" in error_of("+seeed=3")
@@ -238,6 +239,7 @@ def test_values_are_converted_only_where_their_meaning_changes():
     assert type(out["data"]["resolution"]) is int and type(out["reconstruct"]["lr"]) is float
 
 
+@pytest.mark.slow
 def test_pipeline_validates_before_touching_data(tmp_path):
     missing = tmp_path / "no-such-scene"
     with pytest.raises(ConfigError, match="reconstruct.batch_rays"):
@@ -248,6 +250,7 @@ def test_pipeline_validates_before_touching_data(tmp_path):
         validate_config(cfg("stage=reconstruct", "device=cuda:7"))
 
 
+@pytest.mark.slow
 def test_cli_bad_value_is_one_config_error_line_without_traceback(tmp_path):
     proc = run_cli(["preset=draft", "reconstruct.batch_rays=abc", f"output_root={tmp_path}",
                     f"hydra.run.dir={tmp_path}/hydra"], timeout=300)
@@ -352,6 +355,7 @@ def _build_cheap_components(c: dict, tmp: Path) -> None:
     build_trainer(int(c["reconstruct"]["steps"]), torch.device("cpu"), c["trainer"], run_dir=tmp)
 
 
+@pytest.mark.slow
 @settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                  HealthCheck.function_scoped_fixture])
 @given(setting=st.sampled_from(SETTINGS), value=BAD_VALUES, extra=st.sampled_from(SETTINGS), value2=BAD_VALUES,
@@ -377,6 +381,7 @@ def test_property_any_value_of_any_setting_is_valid_or_a_project_error(tmp_path,
 EDGE_VALUES = [0, -1, 0.5, -0.5, float("nan"), float("inf"), 10**12, True, None, "", "abc", [], [0, 0], {"k": 1}]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", VARIANTS, ids=" ".join)
 def test_every_setting_with_every_edge_value(tmp_path, variant):
     """The exhaustive counterpart of the property test: each setting of the variant x each edge value."""

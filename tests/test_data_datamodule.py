@@ -44,6 +44,7 @@ def test_val_full_views(dm):
     assert (b["view_id"] == dm.scene.val_ids[0]).all()
 
 
+@pytest.mark.slow
 def test_ndc_forward_facing(shared_data):
     m = SceneDataModule({"kind": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40})
     m.setup("fit")

@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -29,6 +30,7 @@ def _npz_entries():
     return st.dictionaries(key, arr, max_size=5)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(entries=_npz_entries(), garbage=st.binary(max_size=64), mode=st.sampled_from(["npz", "bytes", "truncated"]))
 def test_fuzz_cameras_npz(entries, garbage, mode):
@@ -47,6 +49,7 @@ def test_fuzz_cameras_npz(entries, garbage, mode):
         assert np.isfinite(K).all() and np.isfinite(c2w).all() and len(K) == len(c2w) >= 1
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(
     arr=st.one_of(
@@ -73,6 +76,7 @@ def test_fuzz_poses_bounds(arr, garbage, mode):
         assert np.isfinite(pb.c2w).all() and (pb.bounds[:, 1] > pb.bounds[:, 0]).all()
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(
     files=st.dictionaries(
@@ -134,6 +138,7 @@ def _tiny_images(d: Path) -> None:
     Image.fromarray(rng.integers(0, 255, (6, 8), dtype=np.uint8)).save(d / "m.png")
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(meta=_transforms, garbage=st.binary(max_size=64), mode=st.sampled_from(["json", "json", "bytes", "truncated"]))
 def test_fuzz_transforms_json(meta, garbage, mode):

@@ -27,6 +27,7 @@ def test_head_default_is_native_256_and_logged(caplog) -> None:
     assert any("data.resolution=auto: native 256x256" in r.getMessage() for r in caplog.records)
 
 
+@pytest.mark.slow
 def test_selfie_frames_load_at_270x480_with_either_loader(shared_data) -> None:
     """540x960 frames: h3ds (cameras.npz) and selfie (existing COLMAP model) agree on 270x480."""
     a = load_scene("h3ds", shared_data / "yanan_nature", use_masks=False)

@@ -141,6 +141,7 @@ def test_export_unknown_suffix(tmp_path):
         MeshExtractor().export(mesh, tmp_path / "mesh.stl")
 
 
+@pytest.mark.slow
 def test_chamfer_to_true_surface_falls_with_resolution():
     field = TorusSDF(0.5, 0.2)
     coarse = chamfer_to_analytic(extractor(resolution=32, color=False).extract(field), field, n_samples=20_000)

@@ -25,6 +25,7 @@ def _sphere_rays(R: int, gen: torch.Generator, radius: float = 0.5) -> dict:
     return {"rays_o": cam, "rays_d": d, "near": torch.full((R,), 1.0), "far": torch.full((R,), 4.0), "rgb": rgb}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "backbone,encoding,occupancy,factor",
     [("nerf", {"name": "grid", "resolution": 32, "n_components": 8, "out_features": 16}, True, 0.5),

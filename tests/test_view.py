@@ -31,6 +31,7 @@ def mesh_files(tmp_path_factory) -> dict[str, Path]:
     }
 
 
+@pytest.mark.slow
 def test_one_mesh_screenshot_not_blank_and_differs(tmp_path, mesh_files):
     a = render_meshes([mesh_files["sphere"]], screenshot=tmp_path / "a.png", window_size=SIZE)
     b = render_meshes([mesh_files["torus"]], screenshot=tmp_path / "b.png", window_size=SIZE)
@@ -68,6 +69,7 @@ def test_errors_name_the_file(tmp_path):
     assert info.value.code == 2
 
 
+@pytest.mark.slow
 def test_cli_subprocess(tmp_path, mesh_files):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     out = tmp_path / "cli.png"
