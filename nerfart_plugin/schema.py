@@ -73,6 +73,12 @@ _NO_STEPS = "to skip this stage pick another one: stage=reconstruct | stylize | 
 _CHUNK_OFF = "there is no 'no chunking': a larger chunk renders more rays at once and needs more memory"
 
 
+def _checkpoint_every(default: int) -> Any:
+    return Setting(default, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
+                   off="checkpoints cannot be turned off (last.ckpt is what an interrupted run resumes from); a "
+                       "larger value writes them less often", changes_results=False)
+
+
 # ---------------------------------------------------------------------- the sections with fixed keys
 class OccupancyConfig(Section):
     """``render.occupancy``: the occupancy grid for empty-space skipping."""
@@ -120,9 +126,7 @@ class ReconstructConfig(Section):
     lambda_mask: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the mask BCE (scenes with mattes); 0: off")
     val_every: Int = Setting(1000, ge=0, le=10**9, description="steps between validations; 0: no validation",
                              changes_results=False)
-    checkpoint_every: Int = Setting(100, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
-                                    off="checkpoints cannot be turned off (last.ckpt is what an interrupted run "
-                                        "resumes from); a larger value writes them less often", changes_results=False)
+    checkpoint_every: Int = _checkpoint_every(100)
     val_views: Int = Setting(2, ge=0, le=100_000, description="held-out views rendered at validation; 0: all",
                              changes_results=False)
 
@@ -162,9 +166,7 @@ class StylizeConfig(Section):
                                              "term off")
     render_every: Int = Setting(25, ge=0, le=10**9, description="steps between saved source|stylized renders; 0: none",
                                 changes_results=False)
-    checkpoint_every: Int = Setting(10, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
-                                    off="checkpoints cannot be turned off (last.ckpt is what an interrupted run "
-                                        "resumes from); a larger value writes them less often", changes_results=False)
+    checkpoint_every: Int = _checkpoint_every(10)
     video_frames: Int = Setting(24, ge=0, le=100_000, description="frames of the orbit video; 0: no video",
                                 changes_results=False)
     video_fps: Int = Setting(12, ge=1, le=240, description="frames per second of the video",

@@ -264,6 +264,11 @@ def test_blank_prompt_and_bad_stage_are_clear_errors():
 
 
 # ---------------------------------------------------------------------- the wheel
+def _pip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pip", *args], check=False, capture_output=True, text=True,
+                          timeout=600)
+
+
 @pytest.mark.slow
 def test_wheel_ships_configs_assets_and_negatives(tmp_path):
     """`pip wheel .` packages conf/ as nerfart_plugin/conf plus the default scene and negatives, and the
@@ -286,24 +291,7 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
             ".dev",
         ),
     )
-    proc = subprocess.run(
-        check=False,
-        args=[
-            sys.executable,
-            "-m",
-            "pip",
-            "wheel",
-            str(src),
-            "--no-deps",
-            "--no-build-isolation",
-            "-w",
-            str(tmp_path / "dist"),
-            "-q",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = _pip("wheel", str(src), "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "dist"), "-q")
     assert proc.returncode == 0, proc.stderr[-3000:]
     (wheel,) = (tmp_path / "dist").glob("nerfart_plugin-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -327,23 +315,7 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
 
     # install the wheel into a folder and run the CLI from there, outside the checkout
     target = tmp_path / "site"
-    proc = subprocess.run(
-        check=False,
-        args=[
-            sys.executable,
-            "-m",
-            "pip",
-            "install",
-            "--no-deps",
-            "--target",
-            str(target),
-            str(wheel),
-            "-q",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = _pip("install", "--no-deps", "--target", str(target), str(wheel), "-q")
     assert proc.returncode == 0, proc.stderr[-3000:]
     env = {**os.environ, "PYTHONPATH": str(target)}
     code = (

@@ -72,49 +72,18 @@ def test_errors_name_the_file(tmp_path):
 @pytest.mark.slow
 def test_cli_subprocess(tmp_path, mesh_files):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+
+    def view(*args: str, timeout: int = 120) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "nerfart_plugin.view", *args], cwd=tmp_path, env=env,
+                              check=False, capture_output=True, text=True, timeout=timeout)
+
     out = tmp_path / "cli.png"
-    cmd = [
-        sys.executable,
-        "-m",
-        "nerfart_plugin.view",
-        str(mesh_files["sphere"]),
-        str(mesh_files["torus"]),
-        "--screenshot",
-        str(out),
-        "--window-size",
-        "200",
-        "120",
-        "--scalars",
-        "rgb",
-    ]
-    res = subprocess.run(cmd, cwd=tmp_path, env=env, check=False, capture_output=True, text=True, timeout=300)
+    res = view(str(mesh_files["sphere"]), str(mesh_files["torus"]), "--screenshot", str(out), "--window-size",
+               "200", "120", "--scalars", "rgb", timeout=300)
     assert res.returncode == 0, res.stderr
     img = iio.imread(out)
     assert img.shape[:2] == (120, 200) and img.std() > 10
-    help_ = subprocess.run(
-        [sys.executable, "-m", "nerfart_plugin.view", "--help"],
-        cwd=tmp_path,
-        env=env,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    help_ = view("--help")
     assert help_.returncode == 0 and "--screenshot" in help_.stdout
-    bad = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "nerfart_plugin.view",
-            str(tmp_path / "nope.ply"),
-            "--screenshot",
-            str(tmp_path / "x.png"),
-        ],
-        cwd=tmp_path,
-        env=env,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    bad = view(str(tmp_path / "nope.ply"), "--screenshot", str(tmp_path / "x.png"))
     assert bad.returncode == 2 and "nope.ply" in bad.stderr

@@ -38,7 +38,7 @@ from nerfart_plugin.data.images import (
     match_masks,
     read_image_set,
 )
-from nerfart_plugin.data.normalize import detect_capture, near_far
+from nerfart_plugin.data.normalize import detect_capture
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.registry import register
@@ -207,20 +207,8 @@ def load_h3ds(
     capture, reason = detect_capture(c2w, masks)
     layout = f"views from {image_dir.name}/" + (f", mattes from {mask_dir.name}/" if mask_paths else "")
     notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}; {layout}")
-    near, far = near_far("object", c2w)  # unit sphere from scale_mat: the sphere around each camera
-    return make_scene(
-        images=images,
-        masks=masks,
-        c2w=c2w,
-        K=Ks,
-        near=near,
-        far=far,
-        names=[p.name for p in image_paths],
-        normalization=np.linalg.inv(scales[0]),
-        capture=capture,
-        source=root,
-        notes=notes,
-        hash_paths=[cam_path, *image_paths, *mask_paths],
-        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name),
-        holdout_every=holdout_every,
-    )
+    return make_scene(  # no depth bounds: the unit sphere (from scale_mat) around each camera
+        images=images, masks=masks, c2w=c2w, K=Ks, names=[p.name for p in image_paths],
+        normalization=np.linalg.inv(scales[0]), capture=capture, source=root, notes=notes,
+        hash_paths=[cam_path, *image_paths, *mask_paths], holdout_every=holdout_every,
+        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name))

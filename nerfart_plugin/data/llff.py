@@ -37,7 +37,7 @@ from nerfart_plugin.data.images import (
     read_image_set,
     image_size,
 )
-from nerfart_plugin.data.normalize import apply_similarity, detect_capture, near_far, unit_sphere_from_cameras
+from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.registry import register
@@ -224,21 +224,9 @@ def load_llff(
         T = unit_sphere_from_cameras(pb.c2w, near=pb.bounds[:, 0])
         notes.append(f"capture={capture} ({reason}); look-at region scaled into the unit sphere")
     c2w = apply_similarity(T, pb.c2w)
-    near, far = near_far(capture, c2w, pb.bounds, T)
     return make_scene(
-        images=images,
-        masks=masks,
-        c2w=c2w,
-        K=K,
-        near=near,
-        far=far,
-        names=[p.name for p in image_paths],
-        normalization=T,
-        capture=capture,
-        source=root,
-        notes=notes,
-        hash_paths=[pb_path, *image_paths, *mask_paths],
+        images=images, masks=masks, c2w=c2w, K=K, names=[p.name for p in image_paths], normalization=T,
+        capture=capture, source=root, notes=notes, hash_paths=[pb_path, *image_paths, *mask_paths],
+        bounds=pb.bounds, holdout_every=holdout_every,
         opts=dict(kind="llff", factor=factor, size=(w1, h1), use_masks=use_masks, bd_factor=bd_factor,
-                  capture=capture),
-        holdout_every=holdout_every,
-    )
+                  capture=capture))

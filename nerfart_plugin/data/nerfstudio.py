@@ -78,8 +78,7 @@ from nerfart_plugin.data.images import (
     target_size,
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
-from nerfart_plugin.data.normalize import (apply_similarity, detect_capture, near_far, similarity,
-                                           unit_sphere_from_cameras)
+from nerfart_plugin.data.normalize import apply_similarity, detect_capture, similarity, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data.undistort import UndistortMaps, opencv_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
@@ -559,7 +558,6 @@ def load_nerfstudio(
     c2w0 = np.stack([f.c2w for f in frames])
     capture, T, bounds = normalization(c2w0, masks, scene_box(meta, files[0][1], notes), notes, capture)
     c2w = apply_similarity(T, c2w0[:, :3, :4])
-    near, far = near_far(capture, c2w, bounds, T)
     K = np.stack([f.camera.K for f in frames])
     K[:, 0, :] *= W1 / W0
     K[:, 1, :] *= H1 / H0
@@ -567,7 +565,7 @@ def load_nerfstudio(
     if split is not None:
         notes.append(f"split from the files: {len(split[0])} train / {len(split[1])} held-out views")
     return make_scene(
-        images=images, masks=masks, c2w=c2w, K=K, near=near, far=far,
+        images=images, masks=masks, c2w=c2w, K=K, bounds=bounds,
         names=[_relative(f.image, root) for f in frames], normalization=T, capture=capture, source=root, notes=notes,
         hash_paths=sorted({p for _, p in files} | {f.image for f in frames} | {f.mask for f in frames if f.mask}),
         opts=dict(kind="nerfstudio", size=(W1, H1), masks=mask_source, splits=list(splits), capture=capture,

@@ -45,7 +45,7 @@ from nerfart_plugin.data.images import (
     target_size,
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
-from nerfart_plugin.data.normalize import apply_similarity, detect_capture, near_far, unit_sphere_from_points
+from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
@@ -486,21 +486,8 @@ def load_selfie(
     else:
         T = unit_sphere_from_points(model.points, model.c2w)
     c2w = apply_similarity(T, model.c2w)
-    near, far = near_far(capture, c2w, bounds, T)
     notes.append(f"capture={capture} ({reason})")
     return make_scene(
-        images=images,
-        masks=masks,
-        c2w=c2w,
-        K=K,
-        near=near,
-        far=far,
-        names=model.names,
-        normalization=T,
-        capture=capture,
-        source=root,
-        notes=notes,
-        hash_paths=[*files, *paths, *mask_paths],
-        opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture),
-        holdout_every=holdout_every,
-    )
+        images=images, masks=masks, c2w=c2w, K=K, names=model.names, normalization=T, capture=capture,
+        source=root, notes=notes, hash_paths=[*files, *paths, *mask_paths], bounds=bounds,
+        holdout_every=holdout_every, opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture))
