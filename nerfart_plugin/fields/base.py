@@ -1,9 +1,11 @@
 """The ``Field`` contract shared by all backbones, plus MLP building blocks.
 
 A field maps points x [N,3] (world units, inside [-bound, bound]^3) and unit
-view directions d [N,3] to colour and geometry. The renderer only calls
-``forward`` and ``alpha``; mesh extraction and the occupancy grid only call
-``geometry``. See ``.dev/CONTEXT.md`` ("Field").
+view directions d [N,3] to colour and geometry. The renderer calls ``query``,
+``alpha`` and ``regularizers``; the occupancy grid ``cell_occupancy`` and
+``surface_width``; mesh export ``geometry`` and ``forward``; the stages
+``signed_distance``, the parameter groups and ``scalars``. See
+``docs/architecture.md`` ("The field contract").
 """
 
 from __future__ import annotations
@@ -102,7 +104,7 @@ class GeometricInitMLP(nn.Module):
 
 class Field(nn.Module):
     """The field contract: everything the renderer, the occupancy grid, mesh export and the
-    training stages ask of a backbone (see ``.dev/CONTEXT.md``, "Field"). Nothing outside
+    training stages ask of a backbone (``docs/architecture.md``). Nothing outside
     ``fields/`` branches on the backbone: what differs is answered here.
 
     A field maps points x [N,3] (world units, inside [-bound, bound]^3) and unit view
