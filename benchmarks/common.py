@@ -36,9 +36,11 @@ from nerfart_plugin.utils.io import atomic_write_text  # noqa: E402
 
 BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 FIGURES = ROOT / "benchmarks" / "figures"
-QUICK_OUT = ROOT / "outputs" / "benchmarks" / "BENCHMARKS.quick.md"
+#: scratch folder of quick smoke runs (git-ignored; the tests point $NERFART_BENCH_SCRATCH at a tmp folder)
+SCRATCH = Path(os.environ.get("NERFART_BENCH_SCRATCH", ROOT / "outputs" / "benchmarks"))
+QUICK_OUT = SCRATCH / "BENCHMARKS.quick.md"
 RAW_DIR = ROOT / "benchmarks" / "results"  # real runs: committed next to BENCHMARKS.md, so reports can be rebuilt
-QUICK_RAW_DIR = ROOT / "outputs" / "benchmarks" / "quick"  # smoke runs: scratch, git-ignored
+QUICK_RAW_DIR = SCRATCH / "quick"  # smoke runs: scratch, git-ignored
 GiB = 1024**3
 
 
@@ -165,7 +167,7 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
                    help="tiny smoke version (< 2 min); writes to a scratch file unless --out is given")
     p.add_argument("--out", type=Path, default=None,
                    help=f"Markdown file to write the section into (default {BENCHMARKS_MD.name}; "
-                        f"with --quick: {QUICK_OUT.relative_to(ROOT)})")
+                        f"with --quick: {QUICK_OUT})")
     p.add_argument("--figures", type=Path, default=None,
                    help="folder for PNG figures (default benchmarks/figures; with --quick: next to --out)")
     p.add_argument("--no-write", action="store_true", help="print the section only")

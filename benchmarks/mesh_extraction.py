@@ -2,7 +2,7 @@
 
 For a sphere (r=0.5) and a torus (R=0.5, r=0.2) inside [-1,1]^3, extract meshes at
 several grid resolutions and measure the Chamfer distance to the TRUE surface
-(``nerfart_plugin.export.analytic.chamfer_to_analytic``: |sdf| at samples on the
+(``tests/analytic_fields.py``'s ``chamfer_to_analytic``: |sdf| at samples on the
 mesh, and distance from samples of the analytic surface to the mesh; L1
 convention, world units), extraction time (grid evaluation + marching cubes +
 floater pass, no colour) and vertex count.
@@ -25,10 +25,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # run from a checkout without installing the package
+sys.path.insert(0, str(ROOT / "tests"))  # the analytic stand-in fields are test fixtures
 
-from benchmarks import common
-from nerfart_plugin.export.analytic import SphereSDF, TorusSDF, chamfer_to_analytic
-from nerfart_plugin.export.mesh import MeshExtractor
+from analytic_fields import SphereSDF, TorusSDF, chamfer_to_analytic  # noqa: E402
+from benchmarks import common  # noqa: E402
+from nerfart_plugin.export.mesh import MeshExtractor  # noqa: E402
 
 log = logging.getLogger("mesh_extraction")
 NAME = "mesh_extraction"

@@ -55,7 +55,7 @@ def camera_view(size: int) -> dict[str, Any]:
     """A square S x S view of the unit box from 2.5 units away (the head scene's framing)."""
     import torch
 
-    from nerfart_plugin.systems.stylization import camera_batch
+    from nerfart_plugin.data.rays import camera_batch
 
     f = 1.15 * size
     K = torch.tensor([[f, 0.0, size / 2], [0.0, f, size / 2], [0.0, 0.0, 1.0]])
@@ -90,13 +90,13 @@ def run_method(r, view: dict, mode: str, chunk: int, patch_rays: int, loss_fn, s
     import torch
 
     from nerfart_plugin.losses import weight_regularization
-    from nerfart_plugin.rendering.two_pass import _slice, backprop_patches, render_fixed_samples
+    from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples, slice_rays
 
     g = torch.Generator().manual_seed(seed)
     n = view["rays_o"].shape[0]
     if mode == "full":
         with torch.no_grad():  # the same chunked draws as render_fixed_samples -> identical samples
-            ts = torch.cat([r.sample(_slice(view, sl, n), True, g) for sl in _chunks(n, chunk)])
+            ts = torch.cat([r.sample(slice_rays(view, sl, n), True, g) for sl in _chunks(n, chunk)])
         out = r(view, perturb=False, t_samples=ts)
         loss = loss_fn(out["rgb"]) + LAMBDA_REG * weight_regularization(out["weights"], out["t"])
         loss.backward()
@@ -112,21 +112,21 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     """Child: build the field, warm up, then time one ``mode`` step at ``size`` and report peak memory."""
     import torch
 
-    from nerfart_plugin.systems.base import build_renderer, to_device
+    from nerfart_plugin.factories import build_renderer, typed
+    from nerfart_plugin.systems.base import to_device
     from nerfart_plugin.systems.scene_setup import SceneSetup
     from nerfart_plugin.utils.device import pick_device
 
-    c = common.compose(["stage=reconstruct", *payload["overrides"]])
-    device = pick_device(c.get("device", "auto"))
+    c, _ = typed(common.compose(["stage=reconstruct", *payload["overrides"]]))
+    device = pick_device(c.device)
     torch.manual_seed(0)
-    rc = c["render"]
-    occ = int(rc["occupancy"]["resolution"]) if rc["occupancy"].get("enabled", True) else 0
-    setup = SceneSetup("object", 1.0, False, rc["background_color"], False, occ, int(rc["num_samples"]), True)
-    r = build_renderer(c["backbone"], c["encoding"], rc, setup).to(device)
-    if r.occupancy is not None:
-        r.occupancy.update(r.field, 0, force=True)
+    rc = c.render
+    occ = rc.occupancy.resolution if rc.occupancy.enabled is not False else 0
+    setup = SceneSetup("object", 1.0, False, rc.background_color, False, occ, rc.num_samples, True)
+    r = build_renderer(c, setup).to(device)
+    r.update_occupancy(0, force=True)
     size, mode = int(payload["size"]), payload["mode"]
-    chunk, patch_rays = int(rc["chunk"]), int(c["stylize"]["patch_size"]) ** 2
+    chunk, patch_rays = rc.chunk, c.stylize.patch_size ** 2
     # warm-up at 8x8 (lazy kernel/allocator initialisation is not part of the measurement)
     run_method(r, to_device(camera_view(8), device), mode, chunk, patch_rays, image_loss_fn(8, device), 1)
     view = to_device(camera_view(size), device)
@@ -154,7 +154,7 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     grads = {n: p.grad.detach().cpu() for n, p in r.named_parameters() if p.grad is not None}
     torch.save(grads, payload["grad_path"])
     return {"seconds": secs, "peak_bytes": int(peak), "baseline_rss": int(base), "how": how,
-            "samples": int(view["rays_o"].shape[0]) * int(rc["num_samples"])}
+            "samples": int(view["rays_o"].shape[0]) * rc.num_samples}
 
 
 def max_rel_diff(a: dict, b: dict) -> float:

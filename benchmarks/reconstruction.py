@@ -122,13 +122,13 @@ def _budget_callback(budget: float, checkpoints: list[float], evaluate, stretch_
 
 # --------------------------------------------------------------------------- one run
 def load_scene(overrides: list[str]):
-    """A Pipeline with the scene loaded and its training rays precomputed (shared by all backbones)."""
-    from nerfart_plugin.pipeline import Pipeline
+    """The loaded scene (:func:`nerfart_plugin.factories.build_scene`) with its training rays precomputed
+    (shared by all backbones)."""
+    from nerfart_plugin.factories import build_scene
 
-    p = Pipeline(common.compose(["stage=reconstruct", *overrides]))
-    p.load_data()
-    p.dm.setup("fit")
-    return p
+    scene = build_scene(common.compose(["stage=reconstruct", *overrides]))
+    scene.dm.setup("fit")
+    return scene
 
 
 def strided_view(batch: dict[str, Any], stride: int) -> dict[str, Any]:
@@ -148,27 +148,24 @@ def strided_view(batch: dict[str, Any], stride: int) -> dict[str, Any]:
     return out
 
 
-def train_one(p, overrides: list[str], budget: float, checkpoints: list[float], eval_views: int,
+def train_one(scene, overrides: list[str], budget: float, checkpoints: list[float], eval_views: int,
               stretch_schedule: bool, max_steps: int = 10**9, eval_stride: int = 1) -> dict[str, Any]:
-    """Train one backbone on the loaded scene of ``p`` for ``budget`` s of training (or ``max_steps``);
+    """Train one backbone on the loaded ``scene`` for ``budget`` s of training (or ``max_steps``);
     returns the checkpoint records and the final metrics (all held-out views)."""
     import lightning as L
     import torch
 
-    from nerfart_plugin.systems.base import steps_loader
-    from nerfart_plugin.systems.reconstruction import ReconstructionSystem, view_metrics
+    from nerfart_plugin.evaluation import mean_metrics, view_metrics
+    from nerfart_plugin.factories import build_reconstruction_system
+    from nerfart_plugin.fit import train_steps
 
-    from nerfart_plugin.systems.scene_setup import decide_setup
-
-    c = common.compose(["stage=reconstruct", *overrides])
-    L.seed_everything(int(c["seed"]), verbose=False)
-    setup = decide_setup(p.scene, c["render"], ndc=p.dm.ndc)  # this run's render settings (samples, grid)
-    system = ReconstructionSystem(c["reconstruct"], c["backbone"], c["encoding"], c["render"], setup,
-                                  train_rays=p.dm.train_rays, seed=int(c["seed"]))
-    views = [p.dm.view_batch(i) for i in (p.scene.val_ids or p.scene.train_ids[:1])]
+    ctx = scene.with_config(common.compose(["stage=reconstruct", *overrides]))  # this run's render settings
+    L.seed_everything(ctx.cfg.seed, verbose=False)
+    system = build_reconstruction_system(ctx)
+    views = [ctx.dm.view_batch(i) for i in (ctx.scene.val_ids or ctx.scene.train_ids[:1])]
     # intermediate checkpoints: the first eval_views views, every eval_stride-th pixel (final: all, full)
     quick_views = [strided_view(v, eval_stride) for v in (views if eval_views <= 0 else views[:eval_views])]
-    chunk = int(c["render"]["chunk"])
+    chunk = ctx.cfg.render.chunk
 
     @torch.no_grad()
     def evaluate(module, final: bool) -> dict[str, float]:
@@ -179,27 +176,16 @@ def train_one(p, overrides: list[str], budget: float, checkpoints: list[float], 
             img = module.render_view(b, chunk=chunk, with_normals=False)  # PSNR/SSIM need colour only
             per.append(view_metrics(img["rgb"], b["rgb"].reshape(img["rgb"].shape).to(img["rgb"].device),
                                     b.get("mask")))
-        keys = sorted(set().union(*per))
-        out = {k: float(sum(m[k] for m in per if k in m) / sum(1 for m in per if k in m)) for k in keys}
-        out["views"] = len(use)
-        return out
+        return {**mean_metrics(per), "views": len(use)}
 
     cb = _budget_callback(budget, checkpoints, evaluate, stretch_schedule)
-    device = p.device
-    accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
-    devices = [device.index] if device.type == "cuda" and device.index is not None else 1
-    trainer = L.Trainer(max_steps=int(max_steps), accelerator=accelerator, devices=devices,
-                        precision=c["trainer"]["precision"], logger=False, callbacks=[cb],
-                        enable_checkpointing=False, enable_model_summary=False, enable_progress_bar=False,
-                        num_sanity_val_steps=0, limit_val_batches=0)
     w0 = time.perf_counter()
-    trainer.fit(system, train_dataloaders=steps_loader())
+    fit = train_steps(system, int(max_steps), ctx.device, ctx.cfg.trainer, callbacks=[cb])
     wall = time.perf_counter() - w0
     final = cb.records[-1] if cb.records else {}
-    return {"records": cb.records, "final": final, "steps": int(trainer.global_step),
+    return {"records": cb.records, "final": final, "steps": fit.steps,
             "train_seconds": final.get("time", float("nan")), "eval_seconds": cb.eval_seconds, "wall_seconds": wall,
-            "sec_per_step": final.get("time", float("nan")) / max(1, int(trainer.global_step)),
-            "views": len(views)}
+            "sec_per_step": final.get("time", float("nan")) / max(1, fit.steps), "views": len(views)}
 
 
 # --------------------------------------------------------------------------- report
@@ -309,7 +295,7 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
                          common.fmt(f.get("psnr_masked")), common.fmt(f.get("ssim"), ".3f"),
                          common.fmt(t_hit, ".0f", none="not reached"), common.fmt(r["eval_seconds"], ".0f")])
     body += common.md_table(["scene", "backbone", "train time (s)", "steps", "s/step", "PSNR (dB)",
-                             "masked PSNR (dB)", "SSIM", f"reaches target at (s)", "eval time (s)"], rows,
+                             "masked PSNR (dB)", "SSIM", "reaches target at (s)", "eval time (s)"], rows,
                             "ll" + "r" * 8)
     body += ["", "Target metric per scene: head = masked PSNR >= 25 dB, fern = PSNR >= 22 dB.", ""]
     body += verdicts(results, specs, args.budget_scale, args.quick)

@@ -73,31 +73,27 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     import lightning as L
     import torch
 
-    from nerfart_plugin.systems.reconstruction import view_metrics
-    from nerfart_plugin.pipeline import Pipeline
-    from nerfart_plugin.systems.base import steps_loader
-    from nerfart_plugin.systems.reconstruction import ReconstructionSystem
-    from nerfart_plugin.systems.scene_setup import decide_setup
+    from nerfart_plugin.evaluation import view_metrics
+    from nerfart_plugin.factories import build_reconstruction_system, build_scene
+    from nerfart_plugin.fit import train_steps
 
     common.quiet_logs()
-    p = Pipeline(common.compose(["stage=reconstruct", *payload["overrides"]]))
-    p.load_data()
-    p.dm.setup("fit")
-    c, dev = p.c, p.device
+    scene = build_scene(common.compose(["stage=reconstruct", *payload["overrides"]]))
+    dev = scene.device
     flip = payload.get("flip", [])
     if flip:  # the opposite of what decide_setup chose for this scene
+        c = dict(scene.plain, render=dict(scene.plain["render"]))
         if "occupancy" in flip:
-            c["render"]["occupancy"]["enabled"] = not p.setup.occupancy_resolution
+            c["render"]["occupancy"] = {**c["render"]["occupancy"], "enabled": not scene.setup.occupancy_resolution}
         if "background" in flip:
-            c["render"]["background_model"] = not p.setup.background_model
-        p.setup = decide_setup(p.scene, c["render"], ndc=p.dm.ndc)
+            c["render"]["background_model"] = not scene.setup.background_model
+        scene = scene.with_config(c)
     cuda = dev.type == "cuda"
     torch.manual_seed(0)
-    system = ReconstructionSystem(c["reconstruct"], c["backbone"], c["encoding"], c["render"], p.setup,
-                                  train_rays=p.dm.train_rays, seed=int(c["seed"]))
+    system = build_reconstruction_system(scene)
     system.to(dev)
-    info: dict[str, Any] = {"setup": {k: v for k, v in p.setup.to_dict().items() if k != "reasons"},
-                            "image": [p.scene.width, p.scene.height]}
+    info: dict[str, Any] = {"setup": {k: v for k, v in scene.setup.to_dict().items() if k != "reasons"},
+                            "image": [scene.scene.width, scene.scene.height]}
     warm, n = int(payload["warmup"]), int(payload["steps"])
     times: list[float] = []
     marks: dict[str, int] = {}
@@ -117,19 +113,14 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
                 torch.cuda.synchronize()
             times.append(time.perf_counter() - self.t)
 
-    trainer = L.Trainer(max_steps=warm + n, accelerator={"cuda": "gpu"}.get(dev.type, "cpu"), devices=1,
-                        logger=False, callbacks=[Timer()], enable_checkpointing=False, enable_model_summary=False,
-                        enable_progress_bar=False, num_sanity_val_steps=0, limit_val_batches=0)
-    trainer.fit(system, train_dataloaders=steps_loader())
+    train_steps(system, warm + n, dev, scene.cfg.trainer, callbacks=[Timer()])
     peak = (torch.cuda.max_memory_allocated(dev) if cuda else common.peak_rss()) - marks.get("train_base", 0)
     meas = times[warm:] or times
-    occ = system.renderer.occupancy
     info.update(train_seconds=statistics.fmean(meas), train_seconds_median=statistics.median(meas),
-                steps=len(meas), warmup=warm, train_peak_bytes=int(peak),
-                occupied_fraction=float(occ.occupied_fraction) if occ is not None else None)
+                steps=len(meas), warmup=warm, train_peak_bytes=int(peak), occupied_fraction=system.occupied_fraction)
 
-    vid = (p.scene.val_ids or p.scene.train_ids)[0]
-    view = p.dm.view_batch(vid)
+    vid = (scene.scene.val_ids or scene.scene.train_ids)[0]
+    view = scene.dm.view_batch(vid)
     system.eval()
     gc.collect()
     base = torch.cuda.memory_allocated(dev) if cuda else common.reset_peak_rss()
@@ -137,7 +128,7 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
         torch.cuda.reset_peak_memory_stats(dev)
     t0 = time.perf_counter()
     with torch.no_grad():
-        img = system.render_view(view, chunk=int(c["render"]["chunk"]))
+        img = system.render_view(view, chunk=scene.cfg.render.chunk)
     if cuda:
         torch.cuda.synchronize()
     secs = time.perf_counter() - t0

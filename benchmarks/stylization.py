@@ -96,30 +96,29 @@ def clip_reference(reps: int, model_overrides: Optional[dict] = None, batch: int
 
 # --------------------------------------------------------------------------- scene and system
 class Context:
-    """Scene, setup and source weights shared by every run."""
+    """Scene, setup and source weights shared by every run (built through :mod:`nerfart_plugin.factories`)."""
 
     def __init__(self, overrides: list[str], source_checkpoint: Optional[Path], source: str = "fresh") -> None:
-        from nerfart_plugin.pipeline import Pipeline, _renderer_state
-        from nerfart_plugin.systems.base import build_renderer
+        from nerfart_plugin.factories import build_renderer, build_scene, load_renderer_state
+        from nerfart_plugin.stages import ReconstructStage
 
         self.base = overrides
         self.occupied: Optional[float] = None
-        self.pipe = Pipeline(common.compose(["stage=reconstruct", *overrides]))
-        self.pipe.load_data()
-        c = self.pipe.c
+        self.scene = build_scene(common.compose(["stage=reconstruct", *overrides]))
+        self.c = self.scene.plain
         if source_checkpoint is None and source == "trained":
-            source_checkpoint = self.pipe.recon_dir / "final.ckpt"
-            if not source_checkpoint.exists():
-                log.info("no cached reconstruction at %s: reconstructing the head first", self.pipe.recon_dir)
-                source_checkpoint = self.pipe.reconstruct()
+            recon = ReconstructStage(self.scene)
+            if not recon.folder.finished:
+                log.info("no cached reconstruction at %s: reconstructing the head first", recon.folder.path)
+            source_checkpoint = recon.run().checkpoint
         self.checkpoint = Path(source_checkpoint) if source_checkpoint is not None else None
         if self.checkpoint is not None:
-            self.source_state = _renderer_state(self.checkpoint)
+            self.source_state = load_renderer_state(self.checkpoint, self.scene)
         else:
             import torch
 
             torch.manual_seed(0)
-            self.source_state = build_renderer(c["backbone"], c["encoding"], c["render"], self.pipe.setup).state_dict()
+            self.source_state = build_renderer(self.scene.cfg, self.scene.setup).state_dict()
 
 
 def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[int] = None,
@@ -127,19 +126,17 @@ def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[in
     """Part 0: PSNR of K-sample renders of the source against a 256-sample render, and seconds per view."""
     import torch
 
+    from nerfart_plugin.factories import build_renderer
     from nerfart_plugin.losses import psnr
     from nerfart_plugin.rendering.two_pass import render_fixed_samples
-    from nerfart_plugin.systems.base import build_renderer
-    from nerfart_plugin.systems.stylization import style_views
 
-    c = ctx.pipe.c
-    r = build_renderer(c["backbone"], c["encoding"], c["render"], ctx.pipe.setup)
+    r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
     r.load_state_dict(ctx.source_state)
     r.eval()
-    scene = ctx.pipe.scene
-    res = int(resolution or c["stylize"]["resolution"])
-    vs = style_views(scene, (scene.val_ids or scene.train_ids)[:views], res, ctx.pipe.dm.ndc)
-    ctx.occupied = float(r.occupancy.occupied_fraction) if r.occupancy is not None else 1.0
+    scene = ctx.scene.scene
+    res = int(resolution or ctx.c["stylize"]["resolution"])
+    vs = ctx.scene.views((scene.val_ids or scene.train_ids)[:views], res)
+    ctx.occupied = r.occupied_fraction if r.occupied_fraction is not None else 1.0
 
     def render(k: int, perturb: bool) -> list[torch.Tensor]:
         r.num_samples = k
@@ -165,25 +162,17 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
     import lightning as L
 
     from nerfart_plugin.evaluation import clip_scores
-    from nerfart_plugin.guidance import (augment_prompt, build_guidance, build_perceptual, default_source_prompt,
-                                         resolve_negatives)
-    from nerfart_plugin.systems.base import steps_loader
-    from nerfart_plugin.systems.stylization import StylizationSystem, style_views
+    from nerfart_plugin.factories import build_style, build_stylization_system
+    from nerfart_plugin.fit import train_steps
 
     c = common.compose(["stage=stylize", f"+prompt={PROMPT}", *ctx.base, *overrides])
     L.seed_everything(int(c["seed"]), verbose=False)
     if clip_overrides and c["guidance"]["name"] == "clip":
         c["guidance"]["clip"]["model_overrides"] = clip_overrides
-    guidance = guidance or build_guidance(c["guidance"])
-    perceptual = perceptual or build_perceptual(c["guidance"])
-    scene, sc = ctx.pipe.scene, c["stylize"]
-    views = style_views(scene, scene.train_ids, int(sc["resolution"]), ctx.pipe.dm.ndc)
-    prompt = augment_prompt(PROMPT)
-    src_prompt = default_source_prompt(c["data"].get("subject") or "object")
-    system = StylizationSystem(sc, c["experiment"], c["backbone"], c["encoding"], c["render"], ctx.pipe.setup,
-                               ctx.source_state, views, guidance, perceptual, prompt, src_prompt,
-                               resolve_negatives(sc.get("negatives"), guidance, prompt), seed=int(c["seed"]),
-                               raw_prompt=PROMPT)
+    scene = ctx.scene.with_config(c)
+    style = build_style(scene.cfg, guidance, perceptual)
+    system = build_stylization_system(scene, ctx.source_state, style)
+    sc = system.cfg
 
     class Recorder(L.Callback):
         def __init__(self) -> None:
@@ -193,24 +182,21 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
             self.timings.append(dict(pl_module.timings))
 
     rec = Recorder()
-    trainer = L.Trainer(max_steps=steps, accelerator={"cuda": "gpu"}.get(ctx.pipe.device.type, "cpu"), devices=1,
-                        logger=False, callbacks=[rec], enable_checkpointing=False, enable_model_summary=False,
-                        enable_progress_bar=False, num_sanity_val_steps=0, limit_val_batches=0)
-    trainer.fit(system, train_dataloaders=steps_loader())
-    out: dict[str, Any] = {"timings": rec.timings, "resolution": int(sc["resolution"]),
-                           "local_patches": int(sc["local_patches"]), "guidance": guidance, "perceptual": perceptual,
-                           "patch_size": int(sc["patch_size"]),
-                           "num_samples": int(sc.get("num_samples") or c["render"]["num_samples"])}
+    train_steps(system, steps, scene.device, scene.cfg.trainer, callbacks=[rec])
+    out: dict[str, Any] = {"timings": rec.timings, "resolution": int(sc.resolution),
+                           "local_patches": sc.local_patches, "guidance": style.guidance,
+                           "perceptual": style.perceptual, "patch_size": sc.patch_size,
+                           "num_samples": int(sc.num_samples or scene.cfg.render.num_samples)}
     if score:
         import torch
 
         system.eval()
-        ids = scene.val_ids or scene.train_ids[:4]
-        ev = style_views(scene, ids, int(sc["resolution"]), ctx.pipe.dm.ndc)
+        ids = scene.scene.val_ids or scene.scene.train_ids[:4]
+        ev = scene.views(ids, sc.resolution)
         with torch.no_grad():
             sty = torch.stack([system.render_batch(v)["rgb"].permute(2, 0, 1) for v in ev]).clamp(0, 1)
             src = torch.stack([system.render_batch(v, source=True)["rgb"].permute(2, 0, 1) for v in ev]).clamp(0, 1)
-        out.update(clip_scores(guidance, sty, src, prompt, src_prompt))
+        out.update(clip_scores(style.guidance, sty, src, style.prompt, style.source_prompt))
     return out
 
 
@@ -256,14 +242,13 @@ def main(argv: list[str] | None = None) -> int:
     info = common.machine_info()
     out_md, _ = common.output_paths(args)
 
-    import torch
 
     from nerfart_plugin.guidance import random_patches
 
     ctx = Context(base, args.source_checkpoint, args.source or ("fresh" if q else "trained"))
     fidelity = samples_fidelity(ctx, args.samples or ([8, 16] if q else [8, 12, 16, 24, 32, 64]), 32 if q else None) \
         if ctx.checkpoint is not None else []
-    res1 = 32 if q else int(ctx.pipe.c["stylize"]["resolution"])
+    res1 = 32 if q else int(ctx.c["stylize"]["resolution"])
     log.info("part 1: %d steps at %d px with random-weight CLIP ViT-B/32 + VGG16", steps, res1)
     tiny = None
     if args.tiny_clip:
@@ -271,8 +256,8 @@ def main(argv: list[str] | None = None) -> int:
     r1 = run_steps(ctx, [*RANDOM_CLIP, f"stylize.resolution={res1}"], steps, clip_overrides=tiny)
     t1 = steady(r1["timings"])
     g, perc = r1["guidance"], r1["perceptual"]
-    k = int(ctx.pipe.c["stylize"]["local_patches"])
-    frac = float(ctx.pipe.c["stylize"]["local_patch_frac"])
+    k = int(ctx.c["stylize"]["local_patches"])
+    frac = float(ctx.c["stylize"]["local_patch_frac"])
     iso = {
         "clip_global": timed(fwd_bwd(g.encode_image, (1, 3, res1, res1)), reps),
         "clip_local": timed(fwd_bwd(lambda x: g.encode_image(random_patches(x, k, frac, g.input_size)),
@@ -318,8 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     # ------------------------------------------------------------------ report
     f2 = lambda v: common.fmt(v, ".2f")
     body = [
-        f"Head scene (shipped h3ds), stylization view {res1}x{res1} px, backbone={ctx.pipe.c['backbone']['name']}, "
-        f"encoding={ctx.pipe.c['encoding']['name']}, {r1['num_samples']} samples/ray, patches of "
+        f"Head scene (shipped h3ds), stylization view {res1}x{res1} px, backbone={ctx.c['backbone']['name']}, "
+        f"encoding={ctx.c['encoding']['name']}, {r1['num_samples']} samples/ray, patches of "
         f"{r1['patch_size']}x{r1['patch_size']} rays, {k} local patches, {len(r1['timings'])} steps "
         "(medians, first step dropped; the one-off render of each view's source image is excluded). "
         "Guidance: open_clip ViT-B/32 + VGG16 with RANDOM weights (same architecture, hence the same cost, as the "
@@ -338,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
                  "same views rendered with 256 samples; seconds per view (mean).", ""]
         body += common.md_table(["samples per ray (K)", "PSNR vs K=256 (dB)", "s / view"],
                                 [[f["samples"], f"{f['psnr']:.2f}", f"{f['seconds']:.3f}"] for f in fidelity])
-        body += ["", f"The stylization default `stylize.num_samples={ctx.pipe.c['stylize']['num_samples']}` is what "
+        body += ["", f"The stylization default `stylize.num_samples={ctx.c['stylize']['num_samples']}` is what "
                  "this table supports: beyond ~40 dB the sampling error is far below any style change.", ""]
     body += [
         "### Part 1: one step versus one CLIP forward+backward",

@@ -40,7 +40,6 @@ def _app(cfg: DictConfig) -> float | None:
     """
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
-    from omegaconf import OmegaConf
 
     from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
     from nerfart_plugin.pipeline import run
@@ -48,7 +47,7 @@ def _app(cfg: DictConfig) -> float | None:
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
-        results = run(cfg)
+        results = run(cfg, output_dir=Path(HydraConfig.get().runtime.output_dir))
     except (RunInterrupted, KeyboardInterrupt) as exc:
         # Ctrl-C: the run folder is resumable; say so and stop (a sweep too), exit code 130 as for SIGINT
         message = str(exc) if isinstance(exc, RunInterrupted) else "interrupted; run the same command again to continue"
@@ -63,7 +62,7 @@ def _app(cfg: DictConfig) -> float | None:
             return None
         sys.exit(2)
     try:
-        return objective(results, OmegaConf.select(cfg, "objective", default="auto"))
+        return objective(results, cfg.objective)
     except ConfigError as exc:
         log.debug("no sweep objective: %s", exc)
         return None
@@ -77,8 +76,6 @@ _NO_JOB_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", 
 def check_output_root(argv: list[str]) -> None:
     """ConfigError before Hydra writes its run folder under ``output_root`` when that cannot be written
     (a read-only folder, a file in the way, a missing parent that cannot be created, a full disk)."""
-    from omegaconf import OmegaConf
-
     from nerfart_plugin.overrides import override_value
     from nerfart_plugin.utils.io import check_writable_dir
 
@@ -86,7 +83,9 @@ def check_output_root(argv: list[str]) -> None:
         return
     root = override_value(argv, "output_root")
     if root is None:
-        root = OmegaConf.load(config_dir() / "config.yaml").get("output_root")
+        from nerfart_plugin.schema import RunConfig
+
+        root = RunConfig.model_fields["output_root"].default
     if isinstance(root, str) and "${" not in root:
         check_writable_dir(root, "output_root")
 

@@ -14,8 +14,12 @@ def config_dir() -> Path:
 
     A checkout (``<repo>/conf``) wins over an installed copy so that edits to a
     checkout take effect; a wheel installs the same folder as the package
-    ``nerfart_plugin.conf``.
+    ``nerfart_plugin.conf``. Also registers the schema's defaults in Hydra's ConfigStore
+    (:func:`nerfart_plugin.schema.register_schema`), which ``config.yaml`` composes first.
     """
+    from nerfart_plugin.schema import register_schema
+
+    register_schema()
     checkout = Path(__file__).resolve().parents[1] / "conf"
     if (checkout / "config.yaml").is_file():
         return checkout
@@ -42,7 +46,9 @@ def primary_keys() -> set[str]:
     """Config groups and top-level keys of the primary config (keys that already have a default)."""
     root = config_dir()
     groups = {p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith(("_", "."))}
-    top = set(OmegaConf.load(root / "config.yaml").keys())
+    from nerfart_plugin.schema import RunConfig
+
+    top = set(OmegaConf.load(root / "config.yaml").keys()) | set(RunConfig.model_fields)
     return groups | top
 
 

@@ -17,7 +17,7 @@ from pydantic import BeforeValidator, Field
 from pydantic.fields import FieldInfo
 
 __all__ = [
-    "Setting", "Limits", "Int", "Float", "Width", "Depth", "Fraction", "PositiveFloat", "Resolution", "Seed",
+    "Setting", "changes_results", "Limits", "Int", "Float", "Width", "Depth", "Fraction", "PositiveFloat", "Resolution", "Seed",
     "HoldoutEvery", "MAX_WIDTH", "MAX_DEPTH",
 ]
 
@@ -36,14 +36,24 @@ def _no_bool(value: Any) -> Any:
 
 
 def Setting(default: Any = ..., *, description: Optional[str] = None, off: Optional[str] = None,
-            allowed: Optional[str] = None, **constraints: Any) -> Any:
+            allowed: Optional[str] = None, changes_results: bool = True, **constraints: Any) -> Any:
     """A pydantic ``Field`` with ``off``: how to say "off" when a user gives 0 / null for a setting
-    that does not accept it, and ``allowed``: what the error message says is allowed (default:
-    derived from the type and constraints)."""
-    extra = {k: v for k, v in (("off", off), ("allowed", allowed)) if v} or None
+    that does not accept it, ``allowed``: what the error message says is allowed (default:
+    derived from the type and constraints), and ``changes_results=False`` for a setting that does
+    not change what a run computes (how often it logs or saves, how much it renders at once): it is
+    left out of the cache keys of the run folders (:func:`result_settings`)."""
+    extra: dict[str, Any] = {k: v for k, v in (("off", off), ("allowed", allowed)) if v}
+    if not changes_results:
+        extra["changes_results"] = False
     if default is ...:
-        return Field(description=description, json_schema_extra=extra, **constraints)
-    return Field(default, description=description, json_schema_extra=extra, **constraints)
+        return Field(description=description, json_schema_extra=extra or None, **constraints)
+    return Field(default, description=description, json_schema_extra=extra or None, **constraints)
+
+
+def changes_results(info: FieldInfo) -> bool:
+    """False for a field made by :func:`Setting` with ``changes_results=False``."""
+    extra = info.json_schema_extra
+    return not (isinstance(extra, dict) and extra.get("changes_results") is False)
 
 
 def off_hint(info: FieldInfo) -> Optional[str]:

@@ -1,5 +1,10 @@
-"""Stylization metrics: CLIP score, CLIP directional similarity, view consistency, an independent
-ImageNet judge, and how much rendering weight lies off the surface.
+"""Every metric of a run: reconstruction quality (PSNR, masked PSNR, SSIM) and the stylization
+metrics (CLIP score, CLIP directional similarity, view consistency, edge similarity, an independent
+ImageNet judge, how much rendering weight lies off the surface, silhouette IoU).
+
+* Reconstruction (:func:`view_metrics`, :func:`mean_metrics`): PSNR (dB) and SSIM
+  (kornia, 11x11 Gaussian window) of each held-out view, PSNR inside the mask where
+  the scene has masks, averaged over the views.
 
 * CLIP score: mean cosine between the image embedding of each rendered view and
   the target text embedding.
@@ -19,14 +24,71 @@ ImageNet judge, and how much rendering weight lies off the surface.
 * Off-surface weight (:func:`off_surface_weight`): the share of each ray's
   rendering weight farther than ``delta`` from its expected depth: the cloudy
   geometry Eq. 7 suppresses.
+* Edge similarity (:func:`edge_similarity`): cosine of Sobel edge magnitudes of
+  source and stylized views (1 = same structure; what Eq. 9 keeps).
+* Silhouette IoU (:func:`silhouette_iou`): of the opacity masks of source and stylized.
 """
 
 from __future__ import annotations
 
-from typing import Any, Optional
+import logging
+from typing import Any, Iterable, Mapping, Optional
 
 import torch
 import torch.nn.functional as F
+
+from nerfart_plugin.losses import psnr
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------- reconstruction
+def view_metrics(pred: torch.Tensor, target: torch.Tensor, mask: Optional[torch.Tensor] = None) -> dict[str, float]:
+    """PSNR (dB), SSIM (kornia, 11x11 Gaussian window) and, with a mask, PSNR inside the mask.
+
+    ``pred``/``target`` [H,W,3] in [0,1]; ``mask`` [H*W] or [H,W] in [0,1].
+    """
+    import kornia
+
+    pred, target = pred.clamp(0, 1).float(), target.float()
+    out = {"psnr": float(psnr(pred.reshape(-1, 3), target.reshape(-1, 3)))}
+    a = pred.permute(2, 0, 1)[None]
+    b = target.permute(2, 0, 1)[None]
+    out["ssim"] = float(kornia.metrics.ssim(a, b, window_size=11).mean())
+    if mask is not None:
+        m = mask.reshape(-1).to(pred.device).float() > 0.5
+        if m.any():
+            out["psnr_masked"] = float(psnr(pred.reshape(-1, 3)[m], target.reshape(-1, 3)[m]))
+    return out
+
+
+def mean_metrics(per_view: Iterable[Mapping[str, float]]) -> dict[str, float]:
+    """Each metric averaged over the views that have it (``psnr_masked``: the views with a mask)."""
+    per_view = list(per_view)
+    keys = sorted(set().union(*per_view)) if per_view else []
+    return {k: float(sum(m[k] for m in per_view if k in m) / sum(1 for m in per_view if k in m)) for k in keys}
+
+
+@torch.no_grad()
+def evaluate_views(system: Any, views: Iterable[dict[str, Any]], chunk: int,
+                   with_normals: bool = True) -> dict[str, float]:
+    """:func:`mean_metrics` of ``system.render_view`` against each view batch's photo, plus ``val_views``."""
+    per_view = []
+    for batch in views:
+        img = system.render_view(batch, chunk=chunk, with_normals=with_normals)
+        target = batch["rgb"].reshape(img["rgb"].shape).to(img["rgb"].device)
+        per_view.append(view_metrics(img["rgb"], target, batch.get("mask")))
+    return {**mean_metrics(per_view), "val_views": len(per_view)}
+
+
+# ---------------------------------------------------------------------- stylization
+def edge_similarity(a: torch.Tensor, b: torch.Tensor) -> float:
+    """Cosine similarity of Sobel edge magnitudes of two image batches [B,3,H,W] (1 = same structure)."""
+    import kornia
+
+    ea = kornia.filters.sobel(kornia.color.rgb_to_grayscale(a)).flatten(1)
+    eb = kornia.filters.sobel(kornia.color.rgb_to_grayscale(b)).flatten(1)
+    return float(torch.nn.functional.cosine_similarity(ea, eb, dim=1).mean())
 
 
 @torch.no_grad()
@@ -127,6 +189,29 @@ class ImageNetJudge:
                     for i in range(p.shape[0])]
         return {"mean_target_prob": float(p[:, target].mean()), "top5_rate": float((rank < 5).float().mean()),
                 "top1_rate": float((rank < 1).float().mean()), "per_view": per_view}
+
+
+def judge_prompt(prompt: str, source: torch.Tensor, stylized: torch.Tensor, view_ids: list[int]) -> dict[str, Any]:
+    """The independent judge's verdict (:func:`judge_block`) on held-out views [B,3,H,W] in [0,1] when
+    ``prompt`` (as typed) names an ImageNet class, else why it did not run (``{"skipped": reason}``)."""
+    from nerfart_plugin.errors import WeightsMissingError
+    from nerfart_plugin.guidance.imagenet import imagenet_classes
+
+    try:
+        target = imagenet_classes().find(prompt)
+    except ImportError as exc:  # timm missing
+        return {"skipped": f"the judge needs timm ({exc}): pip install -e '.[imagenet]'"}
+    if target is None:
+        return {"skipped": f"the prompt {prompt!r} names no ImageNet class"}
+    try:
+        judge = ImageNetJudge()
+    except WeightsMissingError as exc:
+        return {"skipped": str(exc)}
+    block = judge_block(judge, target, source, stylized, view_ids)
+    log.info("judge (%s, held-out views %s): P(%s) %.4f -> %.4f, top-5 %.0f%% -> %.0f%%", block["model"], view_ids,
+             block["target_class"], block["source"]["mean_target_prob"], block["stylized"]["mean_target_prob"],
+             100 * block["source"]["top5_rate"], 100 * block["stylized"]["top5_rate"])
+    return block
 
 
 def judge_block(judge: ImageNetJudge, target: int, source: torch.Tensor, stylized: torch.Tensor,

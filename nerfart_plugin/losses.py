@@ -12,7 +12,7 @@ accepted too), negatives ``[M, D]``. Every loss returns a 0-dim tensor.
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -241,32 +241,3 @@ def psnr(rgb: Tensor, target: Tensor, mask: Tensor | None = None, max_val: float
     """
     mse = reconstruction_loss(rgb.detach(), target.detach(), None if mask is None else mask.detach())
     return 10.0 * torch.log10(max_val**2 / mse.clamp_min(1e-10))
-
-
-def total_style_loss(terms: Mapping[str, Tensor], lambdas: Mapping[str, float]) -> Tensor:
-    """Eq. 8: ``Σ_k λ_k L_k`` over the computed ``terms``.
-
-    Callers skip computing terms whose λ is 0, so ``terms`` normally only holds
-    non-zero-weighted losses; a term with λ = 0 is ignored, a term without any
-    λ raises ConfigError (a typo in a loss name must not silently drop a loss).
-
-    Args:
-        terms: name -> 0-dim loss tensor, e.g. {"directional": ..., "contrastive": ...}.
-        lambdas: name -> weight λ.
-    Returns: 0-dim tensor.
-    """
-    total: Tensor | None = None
-    for name, value in terms.items():
-        if name not in lambdas:
-            raise ConfigError(
-                f"total_style_loss: no weight for loss term {name!r}; "
-                f"add lambda_{name} to the loss config (known: {sorted(lambdas)})"
-            )
-        lam = float(lambdas[name])
-        if lam == 0.0:
-            continue
-        total = lam * value if total is None else total + lam * value
-    if total is None:
-        ref = next(iter(terms.values()), None)
-        return ref.new_zeros(()) if ref is not None else torch.zeros(())
-    return total

@@ -9,9 +9,8 @@ Usage::
 
     field = registry.build("backbone", "neus", **cfg)
 
-Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``,
-``exporter``. Other distributions add components through entry points
-(:mod:`nerfart_plugin.plugins`).
+Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``. Other
+distributions add components through entry points (:mod:`nerfart_plugin.plugins`).
 """
 
 from __future__ import annotations
@@ -32,7 +31,6 @@ _PROVIDERS: dict[str, tuple[str, ...]] = {
     "encoding": ("nerfart_plugin.fields",),
     "data": ("nerfart_plugin.data",),
     "guidance": ("nerfart_plugin.guidance", "nerfart_plugin.guidance.imagenet"),
-    "exporter": ("nerfart_plugin.export",),
 }
 
 

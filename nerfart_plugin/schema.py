@@ -1,20 +1,25 @@
-"""Typed configuration: one pydantic model per config section, checked before any work.
-
-:func:`validate_config` checks a composed config (a plain dict) before any data,
-weights or training is touched, and raises ONE :class:`~nerfart_plugin.errors.ConfigError`
-listing every violation as ``key=value: what is allowed (how to turn it off)``.
+"""Typed configuration: one pydantic model per config section, the single source of every default.
 
 * The sections with fixed keys have a model here: the run keys (:class:`RunConfig`),
   ``render`` (+ ``render.occupancy``), ``reconstruct``, ``stylize``, ``export``,
-  ``trainer`` and ``experiment``. Each field has its type, its default (exactly the
-  value in ``conf/``: ``tests/test_config_validation.py`` asserts it), its range and
-  a description (units, what 0 / null means). Optional keys that ``conf/`` does not
-  set default to null (add them with ``+render.ndc_bound=2.0``).
+  ``trainer`` and ``experiment`` (every loss weight). Each field has its type, its
+  default, its range and a description (units, what 0 / null means). ``conf/`` does
+  not repeat them: :func:`register_schema` stores :func:`defaults_node` in Hydra's
+  ConfigStore as ``nerfart_schema``, the first entry of ``conf/config.yaml``'s defaults
+  list, so presets, experiments and command-line overrides compose on top of it,
+  ``--cfg job`` prints it and ``--help`` lists every field with its description.
+* :func:`validate_config` checks a composed config (a plain dict) before any data,
+  weights or training is touched, and raises ONE :class:`~nerfart_plugin.errors.ConfigError`
+  listing every violation as ``key=value: what is allowed (how to turn it off)``;
+  :func:`parse_config` returns it typed (:class:`RunConfig`).
 * The component sections (``data``, ``backbone``, ``encoding``, ``guidance``) are
   validated from the constructor of the component they name (registry): the type
   hints of its signature (:mod:`nerfart_plugin.config_types` carries the ranges) and
   its parameter names (an unknown key is reported with the closest valid one), so a
   registered custom component is checked the same way.
+* Fields declared with ``changes_results=False`` (how often a run logs, validates or
+  saves, chunk sizes that only trade memory, where outputs go) are left out of the
+  cache keys of the run folders (:func:`result_settings`); every other setting is in.
 
 Unknown or misspelled keys are refused (``extra="forbid"``) with the closest valid
 key (difflib). Numbers must be finite; booleans are not numbers.
@@ -37,12 +42,14 @@ import annotated_types as at
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, create_model, field_validator
 from pydantic.fields import FieldInfo
 
-from nerfart_plugin.config_types import Float, Fraction, Int, Seed, Setting, allowed_text, off_hint
+from nerfart_plugin.config_types import (Float, Fraction, Int, Seed, Setting, allowed_text, changes_results,
+                                         off_hint)
 from nerfart_plugin.errors import ConfigError
 
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
-    "TrainerConfig", "ExperimentConfig", "SECTIONS", "Issue", "validate_config", "component_model",
+    "TrainerConfig", "ExperimentConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "validate_config", "parse_config",
+    "component_model", "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
 ]
 
 #: samples (rays x samples per ray) of one training step with grad: far beyond any GPU's memory above this
@@ -64,6 +71,12 @@ Color = Annotated[list[Annotated[Float, Field(ge=0.0, le=1.0)]], Field(min_lengt
 AutoBool = Union[Literal["auto"], bool]
 _NO_STEPS = "to skip this stage pick another one: stage=reconstruct | stylize | all | export"
 _CHUNK_OFF = "there is no 'no chunking': a larger chunk renders more rays at once and needs more memory"
+
+
+def _checkpoint_every(default: int) -> Any:
+    return Setting(default, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
+                   off="checkpoints cannot be turned off (last.ckpt is what an interrupted run resumes from); a "
+                       "larger value writes them less often", changes_results=False)
 
 
 # ---------------------------------------------------------------------- the sections with fixed keys
@@ -88,14 +101,15 @@ class RenderConfig(Section):
                                          "(eikonal) is computed while training",
                                          off="reconstruct.lambda_eikonal=0 turns the eikonal term off")
     neus_alpha_mode: Literal["gradient", "sections"] = Setting("sections", description="NeuS opacity estimate")
-    chunk: Int = Setting(4096, ge=1, le=2**20, description="rays per chunk of no-grad full-view rendering",
-                         off=_CHUNK_OFF)
+    chunk: Int = Setting(4096, ge=1, le=2**20, description="rays per chunk of no-grad full-view rendering "
+                         "(validation, evaluation, export renders; memory only)", off=_CHUNK_OFF,
+                         changes_results=False)
     background_color: Optional[Color] = Setting([1.0, 1.0, 1.0], description="[r, g, b] in [0, 1] behind the field "
                                                 "when no background model is used; null: no compositing")
     background_model: AutoBool = Setting("auto", description="learned environment map: auto (unbounded captures "
                                          "without masks) | true | false")
-    ndc_bound: Optional[Float] = Setting(None, gt=0.0, le=100.0, description="half side of the field box of "
-                                         "forward-facing (NDC) captures; null: 1.5")
+    ndc_bound: Float = Setting(1.5, gt=0.0, le=100.0, description="half side of the field box of forward-facing "
+                               "(NDC) captures: NDC x, y of off-centre cameras reach ~1.45 (fern: 1.44)")
     occupancy: OccupancyConfig = Field(default_factory=OccupancyConfig)
 
 
@@ -110,11 +124,11 @@ class ReconstructConfig(Section):
                                 "reconstructs the scene, so it cannot be 0")
     lambda_eikonal: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the eikonal term (SDF); 0: off")
     lambda_mask: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the mask BCE (scenes with mattes); 0: off")
-    val_every: Int = Setting(1000, ge=0, le=10**9, description="steps between validations; 0: no validation")
-    checkpoint_every: Int = Setting(100, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
-                                    off="checkpoints cannot be turned off (last.ckpt is what an interrupted run "
-                                        "resumes from); a larger value writes them less often")
-    val_views: Int = Setting(2, ge=0, le=100_000, description="held-out views rendered at validation; 0: all")
+    val_every: Int = Setting(1000, ge=0, le=10**9, description="steps between validations; 0: no validation",
+                             changes_results=False)
+    checkpoint_every: Int = _checkpoint_every(100)
+    val_views: Int = Setting(2, ge=0, le=100_000, description="held-out views rendered at validation; 0: all",
+                             changes_results=False)
 
 
 class StylizeConfig(Section):
@@ -131,7 +145,9 @@ class StylizeConfig(Section):
     patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)")
     num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing; null: "
                                          "render.num_samples")
-    chunk: Int = Setting(8192, ge=1, le=2**20, description="rays per no-grad chunk", off=_CHUNK_OFF)
+    chunk: Int = Setting(8192, ge=1, le=2**20, description="rays per chunk of the no-grad first pass (Sec. 4.4); "
+                         "the random sample offsets are drawn per chunk, so it is part of the cache key",
+                         off=_CHUNK_OFF)
     freeze_geometry: bool = Setting(False, description="keep the shape, stylize the colour only")
     num_negatives: Int = Setting(64, ge=1, le=100_000, description="negative prompts per step (Eq. 5)",
                                  off="experiment.lambda_global=0 experiment.lambda_local=0 turn the contrastive "
@@ -148,13 +164,13 @@ class StylizeConfig(Section):
     local_patch_frac: Fraction = Setting(0.1, description="local patch AREA as a fraction of the view's area",
                                          off="stylize.local_patches=0 or experiment.lambda_local=0 turns the local "
                                              "term off")
-    render_every: Int = Setting(25, ge=0, le=10**9, description="steps between saved source|stylized renders; 0: none")
-    checkpoint_every: Int = Setting(10, ge=1, le=10**9, description="steps between resume checkpoints (last.ckpt)",
-                                    off="checkpoints cannot be turned off (last.ckpt is what an interrupted run "
-                                        "resumes from); a larger value writes them less often")
-    video_frames: Int = Setting(24, ge=0, le=100_000, description="frames of the orbit video; 0: no video")
+    render_every: Int = Setting(25, ge=0, le=10**9, description="steps between saved source|stylized renders; 0: none",
+                                changes_results=False)
+    checkpoint_every: Int = _checkpoint_every(10)
+    video_frames: Int = Setting(24, ge=0, le=100_000, description="frames of the orbit video; 0: no video",
+                                changes_results=False)
     video_fps: Int = Setting(12, ge=1, le=240, description="frames per second of the video",
-                             off="stylize.video_frames=0 turns the video off")
+                             off="stylize.video_frames=0 turns the video off", changes_results=False)
     occupancy_update_every: Int = Setting(8, ge=0, le=10**9, description="steps between re-estimates of the "
                                           "occupancy grid from the stylized field; 0: keep the reconstruction's")
     occupancy_band: Float = Setting(3.0, gt=0.0, le=1000.0, description="SDF band (occupancy cells) around the "
@@ -172,7 +188,8 @@ class ExportConfig(Section):
                               off="export.enabled=false turns mesh export off")
     level: Optional[Float] = Setting(None, description="iso-level; null: the backbone's (0 for SDF, "
                                      "backbone.mesh_level for nerf)")
-    chunk: Int = Setting(65536, ge=1, le=2**24, description="points per field call", off=_CHUNK_OFF)
+    chunk: Int = Setting(65536, ge=1, le=2**24, description="points per field call (memory only)", off=_CHUNK_OFF,
+                         changes_results=False)
     remove_floaters: bool = Setting(True, description="drop small disconnected components")
     formats: Annotated[list[MeshFormat], Field(min_length=1)] = Setting(
         ["ply"], description="mesh files to write", off="export.enabled=false turns mesh export off")
@@ -187,7 +204,8 @@ Devices = Union[Literal["auto", -1], Annotated[Int, Field(ge=1, le=4096)],
 class TrainerConfig(Section):
     """``trainer``: Lightning Trainer options."""
 
-    log_every_n_steps: Int = Setting(10, ge=1, le=10**9, description="steps between logged metrics")
+    log_every_n_steps: Int = Setting(10, ge=1, le=10**9, description="steps between logged metrics",
+                                     changes_results=False)
     precision: Precision = Setting("32-true", description="Lightning precision")
     strategy: str = Setting("auto", min_length=1, description="Lightning strategy: auto (one device) | ddp | ...",
                             allowed="a Lightning strategy: auto, ddp, ddp_spawn, fsdp, deepspeed, ... "
@@ -209,9 +227,11 @@ class TrainerConfig(Section):
 
 
 class ExperimentConfig(Section):
-    """``experiment``: the weights of Eq. 8 (``conf/experiment/full.yaml``); 0 turns a term off."""
+    """``experiment``: the weights of Eq. 8 (``experiment=full``: these defaults) and of the extra terms; 0 turns a
+    term off (each is a ``lambda_<name>`` of a loss table in :mod:`nerfart_plugin.systems`)."""
 
-    name: str = Setting("full", min_length=1, description="name of the experiment (for the records)")
+    name: str = Setting("full", min_length=1, description="name of the experiment (for the records)",
+                        changes_results=False)
     directional: Literal["relative", "absolute"] = Setting("relative", description="Eq. 4 (relative, NeRF-Art) or "
                                                            "Eq. 3 (absolute, CLIP-NeRF style)")
     lambda_dir: Float = Setting(1.0, ge=0.0, le=1e4, description="weight of the directional CLIP loss; 0: off")
@@ -235,23 +255,32 @@ PathText = Union[str, Path]
 
 
 class RunConfig(Section):
-    """The top-level keys of ``conf/config.yaml``, with the sections as nested models."""
+    """The top-level keys of a run's config, with the sections as nested models."""
 
-    stage: Literal["reconstruct", "stylize", "all", "export"] = Setting("all", description="which stages to run")
+    stage: Literal["reconstruct", "stylize", "all", "export"] = Setting("all", description="which stages to run",
+                                                                         changes_results=False)
     prompt: Optional[PromptText] = Setting(None, description="the style text; required for stylize/all")
     source_prompt: PromptText = Setting("auto", description="source text of the directional loss; auto: from "
                                         "the capture type")
     prompt_augment: bool = Setting(True, description="expand known painter/style names to the paper's prompts")
     seed: Seed = Setting(0, description="seed of every random choice")
-    device: str = Setting("auto", pattern=r"^(auto|cpu|mps|cuda(:\d+)?)$", description="the compute device",
-                          allowed="one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), mps")
-    output_root: PathText = Setting("outputs", description="where runs, caches and Hydra logs go")
-    resume: bool = Setting(True, description="resume an interrupted run; false: start over (the old folder is kept)")
-    source_checkpoint: Optional[PathText] = Setting(None, description="a reconstruction checkpoint to stylize/export")
-    objective: str = Setting("auto", pattern=r"^[A-Za-z_][\w.]*$", description="metric a sweep maximizes",
-                             allowed="auto or a dotted results key such as stylization.clip_score")
+    device: str = Setting("auto", pattern=r"^(auto|cpu|mps|cuda(:\d+)?)$", description="the compute device: auto "
+                          "(CUDA, then MPS, then CPU) | cpu | cuda | cuda:N | mps; a reconstruction made on one "
+                          "device is reused on another", allowed="one of auto, cpu, cuda, cuda:N (N = 0, 1, ...), mps",
+                          changes_results=False)
+    output_root: PathText = Setting("outputs", description="where runs, caches and Hydra logs go",
+                                    changes_results=False)
+    resume: bool = Setting(True, description="resume an interrupted run; false: start over (the old folder is kept)",
+                           changes_results=False)
+    source_checkpoint: Optional[PathText] = Setting(None, description="a reconstruction checkpoint to stylize/export "
+                                                    "(null: the cached reconstruction of these settings)")
+    objective: str = Setting("auto", pattern=r"^[A-Za-z_][\w.]*$", description="metric a sweep maximizes: auto "
+                             "(stylization.clip_directional_similarity, else reconstruction.psnr) or a results key",
+                             allowed="auto or a dotted results key such as stylization.clip_score",
+                             changes_results=False)
     lock_timeout: Optional[Float] = Setting(None, ge=0.0, le=1e7, description="seconds to wait for a run folder "
-                                            "that another process holds; 0: stop at once; null: wait until it ends")
+                                            "that another process holds; 0: stop at once; null: wait until it ends",
+                                            changes_results=False)
     render: RenderConfig = Field(default_factory=RenderConfig)
     reconstruct: ReconstructConfig = Field(default_factory=ReconstructConfig)
     stylize: StylizeConfig = Field(default_factory=StylizeConfig)
@@ -599,21 +628,33 @@ def check_backbone(cfg: Any) -> tuple[dict, list[Issue]]:
 
 
 DataBackground = Optional[Union[Color, Literal["white", "black"]]]
+#: the settings of ``data`` that the datamodule reads besides the loader's (one FieldInfo each: component_model caches)
+DATA_EXTRAS: tuple[tuple[str, Any, Any], ...] = (
+    ("kind", str, ...), ("path", Optional[PathText], None),
+    ("ndc", Optional[bool], Setting(None, description="NDC rays; null: for forward-facing captures")),
+    ("background_color", DataBackground, None),
+    ("subject", Optional[Literal["person", "object", "scene"]],
+     Setting(None, description="what the capture shows (source text of Eq. 4); stylization only: it reaches the "
+             "stylization key through the source prompt", changes_results=False)),
+)
+
+
+def data_model(kind: str) -> type[BaseModel]:
+    """The pydantic model of ``data`` for loader ``kind`` (its settings + :data:`DATA_EXTRAS`)."""
+    from nerfart_plugin import registry
+
+    return component_model(registry.get("data", kind), frozenset({"path"}), DATA_EXTRAS)
 
 
 def check_data(cfg: Any) -> tuple[dict, list[Issue]]:
-    """``data``: ``kind`` + the loader's settings + the datamodule's (path, ndc, background_color)."""
+    """``data``: ``kind`` + the loader's settings + the datamodule's (path, ndc, background_color, subject)."""
     cfg, issues = _mapping("data", cfg)
     loader, issues2 = _registered("data", cfg.get("kind"), "data.kind")
     if loader is None:
         return cfg, issues + issues2
     if cfg.get("path") == "???":
         return cfg, [Issue("data.path", "???", f"required for data={cfg['kind']}: set data.path=/path/to/scene")]
-    model = component_model(loader, frozenset({"path"}), (
-        ("kind", str, ...), ("path", Optional[PathText], None), ("ndc", Optional[bool], None),
-        ("background_color", DataBackground, None),
-        ("subject", Optional[Literal["person", "object", "scene"]], None)))
-    return _check(model, cfg, "data")
+    return _check(data_model(cfg["kind"]), cfg, "data")
 
 
 _GUIDANCE_KEYS = ("name", "allow_random_weights", "allow_download", "perceptual")
@@ -624,10 +665,11 @@ class GuidanceCommon(BaseModel):
 
     model_config = ConfigDict(extra="allow", allow_inf_nan=False)
 
-    name: str
-    allow_random_weights: bool = False
-    allow_download: Optional[bool] = None
-    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = None
+    name: str = Setting("clip", description="the guidance: clip | imagenet | toy (the registry's guidance names)")
+    allow_random_weights: bool = Setting(False, description="tests only: random CLIP/VGG weights (outputs stamped)")
+    allow_download: Optional[bool] = Setting(None, description="fetch missing weights; null: env NERFART_ALLOW_DOWNLOAD")
+    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = Setting(
+        None, description="Eq. 9 features; null: vgg for clip, edges for toy, imagenet for imagenet")
 
 
 def _guidance_parts() -> dict[str, tuple[Any, frozenset[str]]]:
@@ -741,3 +783,127 @@ def validate_config(c: dict) -> dict:
         issues = cross_checks(RunConfig.model_validate(out).model_dump() | {k: out[k] for k in COMPONENTS if k in out})
     raise_issues(issues)
     return out
+
+
+def parse_config(c: Any) -> tuple[RunConfig, dict]:
+    """:func:`validate_config` of ``c`` (a dict or DictConfig), typed: ``(RunConfig, the plain validated dict)``.
+
+    The dict is what a run folder's ``config.yaml`` records; the RunConfig is what code reads
+    (``cfg.reconstruct.steps``; the component sections stay dicts: ``cfg.backbone["name"]``).
+    """
+    plain = validate_config(to_plain(c))
+    return RunConfig.model_validate(plain), plain
+
+
+# ---------------------------------------------------------------------- the one DictConfig -> dict helper
+def to_plain(cfg: Any) -> dict:
+    """A config as plain nested dicts: a DictConfig resolved (``${...}`` interpolations filled in), a
+    mapping copied (nested mappings too), None as ``{}``; anything else is a ConfigError."""
+    if cfg is None:
+        return {}
+    from omegaconf import DictConfig, OmegaConf
+
+    if isinstance(cfg, DictConfig):
+        return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
+    if isinstance(cfg, collections.abc.Mapping):
+        return {k: to_plain(v) if isinstance(v, (collections.abc.Mapping, DictConfig)) else v for k, v in cfg.items()}
+    raise ConfigError(f"a config section must be a mapping of settings, not {type(cfg).__name__}")
+
+
+# ---------------------------------------------------------------------- cache keys from the schema
+def result_settings(section: BaseModel) -> dict[str, Any]:
+    """The settings of ``section`` that change what a run computes: every field except those declared
+    ``changes_results=False``, nested sections included (plain data, for the cache keys)."""
+    out: dict[str, Any] = {}
+    for name, info in type(section).model_fields.items():
+        if not changes_results(info):
+            continue
+        value = getattr(section, name)
+        out[name] = result_settings(value) if isinstance(value, BaseModel) else _dump(value)
+    return out
+
+
+def component_result_settings(section: str, values: dict) -> dict[str, Any]:
+    """A component section (``data``, ...) without its ``changes_results=False`` settings."""
+    if section != "data" or "kind" not in values:
+        return dict(values)
+    fields = data_model(values["kind"]).model_fields
+    return {k: v for k, v in values.items() if k not in fields or changes_results(fields[k])}
+
+
+def _dump(value: Any) -> Any:
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (list, tuple)):
+        return [_dump(v) for v in value]
+    return value
+
+
+# ---------------------------------------------------------------------- the Hydra node and --help
+#: name of the schema's defaults in Hydra's ConfigStore (first entry of conf/config.yaml's defaults list)
+SCHEMA_NODE = "nerfart_schema"
+
+
+def defaults_node() -> dict[str, Any]:
+    """Every default of the sections with fixed keys, as the plain dict Hydra composes first, plus
+    ``hydra.help.template`` listing every setting with its description (``--help``)."""
+    node = RunConfig().model_dump(mode="json", exclude=set(COMPONENTS))
+    node["hydra"] = {"help": {"template": help_template()}}
+    return node
+
+
+def register_schema() -> None:
+    """Store :func:`defaults_node` in Hydra's ConfigStore as :data:`SCHEMA_NODE` (idempotent); done by
+    :func:`nerfart_plugin.config_paths.config_dir`, i.e. before anything composes ``conf/``."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name=SCHEMA_NODE, node=defaults_node())
+
+
+def _settings_lines(model: type[BaseModel], prefix: str = "") -> list[str]:
+    lines: list[str] = []
+    for name, info in model.model_fields.items():
+        sub = _model_in(info.annotation)
+        if sub is not None:
+            lines += _settings_lines(sub, f"{prefix}{name}.")
+            continue
+        if typing.get_origin(info.annotation) is dict:
+            continue  # component sections: their config groups
+        default = info.get_default(call_default_factory=True)
+        default = default if isinstance(default, str) else show(default)
+        note = "" if changes_results(info) else " [not in the cache key]"
+        lines.append(f"  {prefix}{name}={default}: {info.description or ''}{note}")
+    return lines
+
+
+def help_text() -> str:
+    """Every setting of the sections with fixed keys, ``key=default: description``, one per line."""
+    return "\n".join(_settings_lines(RunConfig))
+
+
+def help_template() -> str:
+    """Hydra's ``--help`` template: header, config groups, then :func:`help_text` instead of the raw config."""
+    text = help_text().replace("${", "$\\{")
+    return ("${hydra.help.header}\n== Configuration groups ==\nCompose your configuration from those groups "
+            "(group=option)\n\n$APP_CONFIG_GROUPS\n\n== Settings (key=default: meaning) ==\n"
+            "Override any of them with key=value; the component groups (data, backbone, encoding, guidance) take\n"
+            "the settings of the component they name (see --cfg job).\n\n" + text + "\n\n${hydra.help.footer}\n")
+
+
+SectionT = typing.TypeVar("SectionT", bound=BaseModel)
+
+
+def section(model: type[SectionT], value: Any, prefix: Optional[str] = None) -> SectionT:
+    """``value`` as the typed section ``model``: an instance as it is, a mapping (or DictConfig) validated
+    with the defaults for what it leaves out, None as the defaults. Raises ConfigError (each bad key, named
+    under ``prefix``: by default the section's name)."""
+    if isinstance(value, model):
+        return value
+    values = to_plain(value)
+    try:
+        return model.model_validate(values)
+    except ValidationError as exc:
+        if prefix is None:
+            prefix = next((k for k, m in SECTIONS.items() if m is model), "")
+        raise_issues(issues_from(exc, model, values, prefix))
+        raise  # pragma: no cover - raise_issues raised

@@ -1,8 +1,10 @@
-"""Shared fixtures: the real data in ../shared/data and a quiet, deterministic torch."""
+"""Shared fixtures: the real data in ../shared/data, a quiet, deterministic torch, a scratch working
+folder (nothing is written into the checkout), and ``no_network``."""
 
 from __future__ import annotations
 
 import os
+import socket
 from pathlib import Path
 
 import pytest
@@ -42,3 +44,53 @@ def _project_loggers_propagate():
             lg.propagate = True
             lg.setLevel(logging.NOTSET)
     yield
+
+
+def _tree(path: Path) -> set[str]:
+    return {str(p.relative_to(path)) for p in path.rglob("*")} if path.is_dir() else set()
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _scratch_cwd(tmp_path_factory):
+    """Run the session in a scratch folder: relative defaults (``output_root=outputs``, Hydra's run
+    folder, the benchmarks' quick reports via ``NERFART_BENCH_SCRATCH``) land under tmp, never in the
+    checkout; the checkout's ``outputs/`` must be unchanged at the end."""
+    before = _tree(REPO / "outputs")
+    old_cwd, old_env = Path.cwd(), os.environ.get("NERFART_BENCH_SCRATCH")
+    scratch = tmp_path_factory.mktemp("cwd")
+    os.chdir(scratch)
+    os.environ["NERFART_BENCH_SCRATCH"] = str(scratch / "benchmarks")
+    yield scratch
+    os.chdir(old_cwd)
+    if old_env is None:
+        os.environ.pop("NERFART_BENCH_SCRATCH", None)
+    else:
+        os.environ["NERFART_BENCH_SCRATCH"] = old_env
+    added = sorted(_tree(REPO / "outputs") - before)
+    assert not added, f"tests wrote into the checkout's outputs/: {added[:10]}"
+
+
+@pytest.fixture
+def no_network(monkeypatch: pytest.MonkeyPatch):
+    """Downloads disabled; any attempt to open a socket or call the HF hub fails the test
+    (recorded and asserted at teardown, so attempts from helper threads count too)."""
+    from nerfart_plugin.guidance import weights as wts
+
+    monkeypatch.delenv(wts.ALLOW_DOWNLOAD_ENV, raising=False)
+    attempts: list[tuple] = []
+
+    def boom(*a, **k):
+        attempts.append(a)
+        raise OSError("network disabled in this test")
+
+    monkeypatch.setattr(socket, "create_connection", boom)
+    try:
+        import huggingface_hub
+        import open_clip.pretrained
+    except ImportError:  # pragma: no cover - both come with open_clip
+        pass
+    else:
+        monkeypatch.setattr(huggingface_hub, "hf_hub_download", boom)
+        monkeypatch.setattr(open_clip.pretrained, "hf_hub_download", boom)
+    yield attempts
+    assert not attempts, f"network access attempted although downloads are disabled: {attempts}"

@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from nerfart_plugin.__main__ import normalize_overrides
 from nerfart_plugin.config_paths import config_dir, group_options
 
-from pipeline_helpers import run_cli
+from pipeline_helpers import composed, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 GROUPS = ("backbone", "data", "encoding", "experiment", "guidance", "preset")
@@ -41,7 +41,8 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
         "+render.num_samples=8",  # a nested key with a default
         "++stage=all",  # force-add: Hydra's own
         "+newkey=1",  # no default: Hydra adds it (the schema then refuses it clearly)
-        "+render.ndc_bound=2.0",  # no default: added (an optional key of the schema)
+        "+render.ndc_bound=2.0",  # a schema key (default 1.5): folded
+        "+render.new_key=1",  # no default: Hydra adds it (the schema then refuses it clearly)
         "+data@extra=h3ds",  # a second package of a group: Hydra adds it
         "-m",
         "stage=all",
@@ -54,7 +55,8 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
         "render.num_samples=8",
         "++stage=all",
         "+newkey=1",
-        "+render.ndc_bound=2.0",
+        "render.ndc_bound=2.0",
+        "+render.new_key=1",
         "+data@extra=h3ds",
         "-m",
         "stage=all",
@@ -63,6 +65,7 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
     ]
 
 
+@pytest.mark.slow
 def test_plus_folding_follows_the_selected_group_options():
     # data.factor has a default in data=llff only; data.fps in data=selfie only
     assert normalize_overrides(["data=llff", "+data.factor=4", "+data.fps=3"]) == [
@@ -95,6 +98,7 @@ PROMPTS = [
 ]
 
 
+@pytest.mark.slow
 def test_prompts_are_quoted_for_hydra_and_arrive_intact():
     for text in PROMPTS:
         for key in ("prompt", "source_prompt"):
@@ -104,14 +108,12 @@ def test_prompts_are_quoted_for_hydra_and_arrive_intact():
 
 
 def _composed_value(arg: str, key: str):
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("config", overrides=[arg])
-    return OmegaConf.to_container(cfg, resolve=True)[key]
+    return OmegaConf.to_container(composed(arg), resolve=True)[key]
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(text=st.text(max_size=40))
 def test_any_text_survives_hydra_quoting(text):
@@ -125,6 +127,7 @@ def test_any_text_survives_hydra_quoting(text):
     assert OmegaConf.to_container(OmegaConf.create({"prompt": value}), resolve=True)["prompt"] == text
 
 
+@pytest.mark.slow
 def test_hydra_syntax_in_prompt_values_keeps_its_meaning():
     assert normalize_overrides(["prompt='a,b'"]) == ["prompt='a,b'"]  # quoted by the user: one prompt
     assert normalize_overrides(["-m", "prompt=choice(Joker,Pixar)"]) == ["-m", "prompt=choice(Joker,Pixar)"]
@@ -148,6 +151,7 @@ def test_repeated_prompts_are_one_sweep_each_taken_literally():
         normalize_overrides(["+prompt=Joker", "+prompt=Pixar"])
 
 
+@pytest.mark.slow
 def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
     """A real 2-job sweep: each job gets its prompt intact (they then stop at validation: no reconstruction)."""
     out = tmp_path / "sweep"
@@ -160,6 +164,7 @@ def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
     assert "source_checkpoint" in (jobs[1] / "result.json").read_text()  # the job ran and failed clearly
 
 
+@pytest.mark.slow
 def test_cli_non_ascii_and_quote_prompts():
     cfg = _job_cfg("+prompt=Van Gogh's Starry Night", "source_prompt=a photo (of a face), smiling: 日本")
     assert cfg["prompt"] == "Van Gogh's Starry Night"
@@ -172,11 +177,13 @@ def test_group_options_match_the_conf_folder():
 
 
 # ---------------------------------------------------------------------- --cfg job
+@pytest.mark.slow
 def test_cfg_job_plus_backbone_and_prompt():
     cfg = _job_cfg("+backbone=neus", "+prompt=Joker")
     assert cfg["backbone"]["name"] == "neus" and cfg["prompt"] == "Joker"
 
 
+@pytest.mark.slow
 def test_cfg_job_quoted_prompt_and_plain_backbone():
     cfg = _job_cfg(
         "+backbone=volsdf", "+prompt=Tolkien Elf"
@@ -186,6 +193,7 @@ def test_cfg_job_quoted_prompt_and_plain_backbone():
     assert cfg["backbone"]["name"] == "volsdf" and cfg["prompt"] is None
 
 
+@pytest.mark.slow
 def test_cfg_job_default_backbone_is_volsdf():
     cfg = _job_cfg()
     assert cfg["backbone"]["name"] == "volsdf" and cfg["stage"] == "all"
@@ -194,6 +202,7 @@ def test_cfg_job_default_backbone_is_volsdf():
     )
 
 
+@pytest.mark.slow
 def test_help_lists_groups():
     proc = _cli("--help")
     assert proc.returncode == 0
@@ -203,9 +212,13 @@ def test_help_lists_groups():
         )  # Hydra's "== Configuration groups ==" section
     assert "backbone: nerf, neus, volsdf" in proc.stdout
     assert "stage=reconstruct" in proc.stdout
+    # every setting of the schema with its default and meaning
+    assert "reconstruct.batch_rays=512: random training rays per step" in proc.stdout
+    assert "experiment.lambda_eikonal=0.1:" in proc.stdout
 
 
 # ---------------------------------------------------------------------- errors
+@pytest.mark.slow
 def test_unknown_backbone_group_option_lists_options():
     proc = _cli("backbone=foo")
     assert proc.returncode != 0
@@ -224,20 +237,23 @@ def _assert_clear_error(proc: subprocess.CompletedProcess, *needles: str) -> Non
         assert n in out, (n, out[-2000:])
 
 
+@pytest.mark.slow
 def test_unknown_backbone_name_is_a_config_error():
     _assert_clear_error(
         _cli("backbone.name=foo", "stage=reconstruct"), "'foo'", "nerf, neus, volsdf"
     )
 
 
+@pytest.mark.slow
 def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     proc = _cli("+render.new_key=1", "+render.num_sampels=8", "stage=reconstruct", f"output_root={tmp_path}")
     _assert_clear_error(proc, "render.new_key=1: unknown setting", "did you mean render.num_samples?",
                         "2 invalid settings")
-    cfg = _job_cfg("+render.ndc_bound=2.0", "+backbone=neus")  # an optional key: Hydra adds it, the schema accepts it
+    cfg = _job_cfg("+render.ndc_bound=2.0", "+backbone=neus")  # keys with a default: the + is folded
     assert cfg["render"]["ndc_bound"] == 2.0 and cfg["backbone"]["name"] == "neus"
 
 
+@pytest.mark.slow
 def test_blank_prompt_and_bad_stage_are_clear_errors():
     _assert_clear_error(
         _cli("prompt=  ", "stage=stylize", "guidance=toy"), "prompt", "empty"
@@ -248,6 +264,11 @@ def test_blank_prompt_and_bad_stage_are_clear_errors():
 
 
 # ---------------------------------------------------------------------- the wheel
+def _pip(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pip", *args], check=False, capture_output=True, text=True,
+                          timeout=600)
+
+
 @pytest.mark.slow
 def test_wheel_ships_configs_assets_and_negatives(tmp_path):
     """`pip wheel .` packages conf/ as nerfart_plugin/conf plus the default scene and negatives, and the
@@ -270,24 +291,7 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
             ".dev",
         ),
     )
-    proc = subprocess.run(
-        check=False,
-        args=[
-            sys.executable,
-            "-m",
-            "pip",
-            "wheel",
-            str(src),
-            "--no-deps",
-            "--no-build-isolation",
-            "-w",
-            str(tmp_path / "dist"),
-            "-q",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = _pip("wheel", str(src), "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "dist"), "-q")
     assert proc.returncode == 0, proc.stderr[-3000:]
     (wheel,) = (tmp_path / "dist").glob("nerfart_plugin-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
@@ -311,23 +315,7 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
 
     # install the wheel into a folder and run the CLI from there, outside the checkout
     target = tmp_path / "site"
-    proc = subprocess.run(
-        check=False,
-        args=[
-            sys.executable,
-            "-m",
-            "pip",
-            "install",
-            "--no-deps",
-            "--target",
-            str(target),
-            str(wheel),
-            "-q",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    proc = _pip("install", "--no-deps", "--target", str(target), str(wheel), "-q")
     assert proc.returncode == 0, proc.stderr[-3000:]
     env = {**os.environ, "PYTHONPATH": str(target)}
     code = (

@@ -9,7 +9,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
@@ -20,13 +19,12 @@ from nerfart_plugin.config_paths import config_dir, group_options
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.pipeline import Pipeline, validate_config
 
-from pipeline_helpers import run_cli
+from pipeline_helpers import composed, run_cli
 
 
 @functools.lru_cache(maxsize=None)
 def _composed(*overrides: str) -> dict:
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return OmegaConf.to_container(compose("config", overrides=list(overrides)), resolve=True)
+    return OmegaConf.to_container(composed(*overrides), resolve=True)
 
 
 def cfg(*overrides: str) -> dict:
@@ -40,38 +38,58 @@ def error_of(*overrides: str) -> str:
     return str(info.value)
 
 
-# ---------------------------------------------------------------------- schema defaults == conf/
-def _check_defaults(model: type[BaseModel], yaml_section: dict, where: str) -> None:
-    defaults = model().model_dump()
-    for key, value in yaml_section.items():
-        assert key in defaults, f"{where}.{key} is in conf/ but not in schema.{model.__name__}"
-        sub = schema._model_in(model.model_fields[key].annotation)
-        if sub is not None and isinstance(value, dict):
-            _check_defaults(sub, value, f"{where}.{key}")
-        else:
-            assert defaults[key] == value, f"{where}.{key}: schema default {defaults[key]!r} != conf/ {value!r}"
-    for key in set(defaults) - set(yaml_section):
-        annotation = model.model_fields[key].annotation
-        if schema._model_in(annotation) or typing.get_origin(annotation) is dict:
-            continue  # a section: compared on its own
-        assert defaults[key] is None, \
-            f"{where}.{key} is not in conf/: its schema default must be null (optional key), not {defaults[key]!r}"
+# ---------------------------------------------------------------------- the schema is the one source of defaults
+def _schema_keys(model: type[BaseModel], prefix: str = "") -> set[str]:
+    keys = set()
+    for name, info in model.model_fields.items():
+        if typing.get_origin(info.annotation) is dict:
+            continue  # a component section: its config group
+        sub = schema._model_in(info.annotation)
+        keys |= _schema_keys(sub, f"{prefix}{name}.") if sub is not None else {f"{prefix}{name}"}
+    return keys
 
 
-def test_schema_defaults_are_the_yaml_defaults_section_by_section():
+def _yaml_keys(node: Any, prefix: str = "") -> set[str]:
+    if not isinstance(node, dict):
+        return {prefix[:-1]}
+    return set().union(*(_yaml_keys(v, f"{prefix}{k}.") for k, v in node.items())) if node else set()
+
+
+def test_yaml_repeats_no_schema_default():
+    """conf/config.yaml, experiment=full and preset=balanced set nothing the schema declares."""
+    declared = _schema_keys(schema.RunConfig)
     raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "config.yaml"))
-    raw.pop("defaults")
-    raw.pop("hydra")
-    composed = cfg()  # the default composition (preset=balanced) must agree too
-    for source in (raw, composed):
-        for section, model in schema.SECTIONS.items():
-            if section in source:
-                _check_defaults(model, source[section], section)
-        run = {k: v for k, v in source.items() if k not in schema.SECTIONS and not isinstance(v, dict)}
-        _check_defaults(schema.RunConfig, run, "(top level)")
-    experiment = OmegaConf.to_container(OmegaConf.load(config_dir() / "experiment" / "full.yaml"))
-    _check_defaults(schema.ExperimentConfig, experiment, "experiment")
+    assert raw["defaults"][:2] == [schema.SCHEMA_NODE, "_self_"]
+    raw = {k: v for k, v in raw.items() if k not in ("defaults", "hydra")}
+    assert not _yaml_keys(raw) & declared, "conf/config.yaml repeats schema defaults"
+    for name in ("experiment/full.yaml", "preset/balanced.yaml"):
+        assert not OmegaConf.to_container(OmegaConf.load(config_dir() / name)), f"conf/{name} sets values"
+
+
+def test_composed_defaults_are_the_schema_defaults():
+    composed = cfg()
+    defaults = schema.RunConfig().model_dump(mode="json", exclude=set(schema.COMPONENTS))
+    assert {k: composed[k] for k in defaults} == defaults
     assert schema.validate_config(composed) == composed  # validation changes nothing in the defaults
+
+
+def test_help_lists_every_setting_with_its_description():
+    text = schema.help_text()
+    for key in _schema_keys(schema.RunConfig):
+        assert f"  {key}=" in text, key
+    assert "reconstruct.val_every=1000: steps between validations" in text
+
+
+def test_cache_keys_leave_out_only_what_does_not_change_results():
+    c = schema.RunConfig.model_validate(cfg())
+    assert "chunk" not in schema.result_settings(c.render) and "num_samples" in schema.result_settings(c.render)
+    assert {"precision", "devices", "num_nodes", "strategy"} <= set(schema.result_settings(c.trainer))
+    assert "log_every_n_steps" not in schema.result_settings(c.trainer)
+    rc = schema.result_settings(c.reconstruct)
+    assert not {"val_every", "val_views", "checkpoint_every"} & set(rc) and "steps" in rc
+    sc = schema.result_settings(c.stylize)
+    assert not {"render_every", "checkpoint_every", "video_frames", "video_fps"} & set(sc) and "tau" in sc
+    assert "subject" not in schema.component_result_settings("data", cfg()["data"])
 
 
 GROUP_VARIANTS = [(), ("data=llff", "data.path=x"), ("data=selfie", "data.path=x")] + [
@@ -186,6 +204,7 @@ def test_grid_and_other_constructor_checks_are_config_errors():
         build_field({"name": "volsdf", "beta_init": 1e-5, "beta_min": 1e-4}, {"name": "grid", "resolution": 8})
 
 
+@pytest.mark.slow
 def test_unknown_keys_suggest_the_closest_valid_key():
     assert "did you mean render.num_samples?" in error_of("+render.num_sampels=3")
     assert "did you mean seed?" in error_of("+seeed=3")
@@ -196,9 +215,9 @@ def test_unknown_keys_suggest_the_closest_valid_key():
     assert "guidance.clip" in error_of("+guidance.clp={model: x}")
 
 
-def test_optional_keys_absent_from_conf_are_accepted():
-    c = schema.validate_config(cfg("+render.ndc_bound=2.0"))
-    assert c["render"]["ndc_bound"] == 2.0
+def test_every_key_the_code_reads_has_a_default():
+    c = schema.validate_config(cfg("render.ndc_bound=2.0", "experiment.lambda_eikonal=0.3"))
+    assert c["render"]["ndc_bound"] == 2.0 and c["experiment"]["lambda_eikonal"] == 0.3
 
 
 def test_every_violation_in_one_error():
@@ -220,6 +239,7 @@ def test_values_are_converted_only_where_their_meaning_changes():
     assert type(out["data"]["resolution"]) is int and type(out["reconstruct"]["lr"]) is float
 
 
+@pytest.mark.slow
 def test_pipeline_validates_before_touching_data(tmp_path):
     missing = tmp_path / "no-such-scene"
     with pytest.raises(ConfigError, match="reconstruct.batch_rays"):
@@ -230,6 +250,7 @@ def test_pipeline_validates_before_touching_data(tmp_path):
         validate_config(cfg("stage=reconstruct", "device=cuda:7"))
 
 
+@pytest.mark.slow
 def test_cli_bad_value_is_one_config_error_line_without_traceback(tmp_path):
     proc = run_cli(["preset=draft", "reconstruct.batch_rays=abc", f"output_root={tmp_path}",
                     f"hydra.run.dir={tmp_path}/hydra"], timeout=300)
@@ -315,26 +336,26 @@ def _build_cheap_components(c: dict, tmp: Path) -> None:
     from nerfart_plugin.export import MeshExtractor
     from nerfart_plugin.fields import OccupancyGrid, build_field
     from nerfart_plugin.guidance import build_guidance, build_perceptual
-    from nerfart_plugin.pipeline import _trainer
+    from nerfart_plugin.fit import build_trainer
 
     if _small(c):
-        build_field(c["backbone"], c["encoding"], bound=float(c["render"].get("ndc_bound") or 1.0))
+        build_field(c["backbone"], c["encoding"], bound=float(c["render"]["ndc_bound"]))
     occ = c["render"]["occupancy"]
     OccupancyGrid(resolution=min(int(occ["resolution"]), 32), threshold=occ["threshold"],
                   update_every=occ["update_every"], warmup_steps=occ["warmup_steps"])
     ec = c["export"]
     MeshExtractor(resolution=ec["resolution"], chunk=ec["chunk"], level=ec["level"],
                   remove_floaters=ec["remove_floaters"])
-    SceneDataModule({**c["data"], "background_color": c["data"].get("background_color",
-                                                                    c["render"]["background_color"])})
+    SceneDataModule({"background_color": c["render"]["background_color"], **c["data"]})
     if c["guidance"]["name"] == "toy":
         build_guidance(c["guidance"])
         build_perceptual(c["guidance"])
     import torch
 
-    _trainer(tmp, int(c["reconstruct"]["steps"]), torch.device("cpu"), [], c["trainer"])
+    build_trainer(int(c["reconstruct"]["steps"]), torch.device("cpu"), c["trainer"], run_dir=tmp)
 
 
+@pytest.mark.slow
 @settings(max_examples=1000, deadline=None, suppress_health_check=[HealthCheck.too_slow,
                                                                  HealthCheck.function_scoped_fixture])
 @given(setting=st.sampled_from(SETTINGS), value=BAD_VALUES, extra=st.sampled_from(SETTINGS), value2=BAD_VALUES,
@@ -360,6 +381,7 @@ def test_property_any_value_of_any_setting_is_valid_or_a_project_error(tmp_path,
 EDGE_VALUES = [0, -1, 0.5, -0.5, float("nan"), float("inf"), 10**12, True, None, "", "abc", [], [0, 0], {"k": 1}]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("variant", VARIANTS, ids=" ".join)
 def test_every_setting_with_every_edge_value(tmp_path, variant):
     """The exhaustive counterpart of the property test: each setting of the variant x each edge value."""

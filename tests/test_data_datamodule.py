@@ -1,4 +1,4 @@
-"""SceneDataModule: batch shapes, determinism, compositing, NDC, full-view batches."""
+"""SceneDataModule: training rays, compositing, NDC, full-view batches."""
 
 from __future__ import annotations
 
@@ -11,33 +11,18 @@ from nerfart_plugin.errors import ConfigError
 
 @pytest.fixture(scope="module")
 def dm():
-    m = SceneDataModule({"kind": "h3ds", "path": None, "resolution": 32, "batch_rays": 256, "seed": 3,
-                         "steps_per_epoch": 4})
+    m = SceneDataModule({"kind": "h3ds", "path": None, "resolution": 32})
     m.setup("fit")
     return m
 
 
-def test_train_batches_shapes(dm):
-    batches = list(dm.train_dataloader())
-    assert len(batches) == 4
-    b = batches[0]
-    assert b["rays_o"].shape == (256, 3) and b["rays_d"].shape == (256, 3) and b["rgb"].shape == (256, 3)
-    assert b["near"].shape == (256,) and b["far"].shape == (256,) and b["mask"].shape == (256,)
-    assert b["view_id"].dtype == torch.long and set(b["view_id"].tolist()) <= set(dm.scene.train_ids)
-    assert torch.allclose(b["rays_d"].norm(dim=-1), torch.ones(256), atol=1e-5)
+def test_train_rays(dm):
+    rays = dm.train_rays
     n_train = len(dm.scene.train_ids) * 32 * 32
-    assert dm.train_rays["rays_o"].shape == (n_train, 3)
-
-
-def test_train_batches_deterministic():
-    cfg = {"path": None, "resolution": 16, "batch_rays": 64, "seed": 7, "steps_per_epoch": 3}
-    a, b = SceneDataModule(cfg), SceneDataModule(cfg)
-    a.setup("fit"), b.setup("fit")
-    for x, y in zip(a.train_dataloader(), b.train_dataloader()):
-        assert torch.equal(x["rays_o"], y["rays_o"]) and torch.equal(x["rgb"], y["rgb"])
-    c = SceneDataModule(dict(cfg, seed=8))
-    c.setup("fit")
-    assert not torch.equal(next(iter(a.train_dataloader()))["rays_d"], next(iter(c.train_dataloader()))["rays_d"])
+    assert rays["rays_o"].shape == (n_train, 3) and rays["rgb"].shape == (n_train, 3)
+    assert rays["near"].shape == (n_train,) and rays["far"].shape == (n_train,) and rays["mask"].shape == (n_train,)
+    assert rays["view_id"].dtype == torch.long and set(rays["view_id"].tolist()) == set(dm.scene.train_ids)
+    assert torch.allclose(rays["rays_d"].norm(dim=-1), torch.ones(n_train), atol=1e-5)
 
 
 def test_background_composite(dm):
@@ -59,23 +44,17 @@ def test_val_full_views(dm):
     assert (b["view_id"] == dm.scene.val_ids[0]).all()
 
 
-def test_predict_path(dm):
-    dm.render_frames = 5
-    batches = list(dm.predict_dataloader())
-    assert len(batches) == 5 and batches[0]["rays_o"].shape == (32 * 32, 3) and "rgb" not in batches[0]
-    assert (batches[0]["far"] > batches[0]["near"]).all()
-
-
+@pytest.mark.slow
 def test_ndc_forward_facing(shared_data):
-    m = SceneDataModule({"kind": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40,
-                         "batch_rays": 128, "steps_per_epoch": 1})
+    m = SceneDataModule({"kind": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40})
     m.setup("fit")
     assert m.ndc
-    b = next(iter(m.train_dataloader()))
+    b = {k: v[::97] for k, v in m.train_rays.items()}
+    n = b["rays_o"].shape[0]
     assert torch.all(b["near"] == 0) and torch.all(b["far"] == 1)
-    assert torch.allclose(b["rays_o"][:, 2], -torch.ones(128), atol=1e-5)
+    assert torch.allclose(b["rays_o"][:, 2], -torch.ones(n), atol=1e-5)
     end = b["rays_o"] + b["rays_d"]
-    assert torch.allclose(end[:, 2], torch.ones(128), atol=1e-5)  # t = 1 is infinity
+    assert torch.allclose(end[:, 2], torch.ones(n), atol=1e-5)  # t = 1 is infinity
     assert end[:, :2].abs().max() < 1.6  # other views' frusta overhang the reference one a little
     off = SceneDataModule({"kind": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40, "ndc": False})
     off.setup("fit")

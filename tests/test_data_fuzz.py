@@ -8,6 +8,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -29,6 +30,7 @@ def _npz_entries():
     return st.dictionaries(key, arr, max_size=5)
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(entries=_npz_entries(), garbage=st.binary(max_size=64), mode=st.sampled_from(["npz", "bytes", "truncated"]))
 def test_fuzz_cameras_npz(entries, garbage, mode):
@@ -47,6 +49,7 @@ def test_fuzz_cameras_npz(entries, garbage, mode):
         assert np.isfinite(K).all() and np.isfinite(c2w).all() and len(K) == len(c2w) >= 1
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(
     arr=st.one_of(
@@ -73,6 +76,7 @@ def test_fuzz_poses_bounds(arr, garbage, mode):
         assert np.isfinite(pb.c2w).all() and (pb.bounds[:, 1] > pb.bounds[:, 0]).all()
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(
     files=st.dictionaries(
@@ -134,6 +138,7 @@ def _tiny_images(d: Path) -> None:
     Image.fromarray(rng.integers(0, 255, (6, 8), dtype=np.uint8)).save(d / "m.png")
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(meta=_transforms, garbage=st.binary(max_size=64), mode=st.sampled_from(["json", "json", "bytes", "truncated"]))
 def test_fuzz_transforms_json(meta, garbage, mode):
@@ -152,6 +157,7 @@ def test_fuzz_transforms_json(meta, garbage, mode):
             s = load_scene("nerfstudio", d, resolution=None)
         except (DataError, ConfigError):
             return
-        assert s.num_images >= 1 and s.images.shape[1:] == (6, 8, 3)
+        # every frame of one size (a scene of the 6x6 b.png alone is fine; mixed sizes are refused)
+        assert s.num_images >= 1 and s.images.shape[1:] in ((6, 8, 3), (6, 6, 3))
         for t in (s.images, s.c2w, s.K, s.near, s.far, s.normalization):
             assert torch.isfinite(t).all()

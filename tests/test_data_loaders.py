@@ -32,6 +32,7 @@ def test_registry_names():
     assert {"h3ds", "llff", "selfie", "nerfstudio"} <= set(registry.names("data"))
 
 
+@pytest.mark.slow
 def test_girl_h3ds(shared_data):
     s = load_scene("h3ds", shared_data / "girl", resolution=64)
     assert s.images.shape == (31, 64, 64, 3) and s.masks.shape == (31, 64, 64)
@@ -50,6 +51,7 @@ def test_girl_h3ds(shared_data):
     assert s.normalization.shape == (4, 4)
 
 
+@pytest.mark.slow
 def test_girl_intrinsics_scale_with_resolution(shared_data):
     a = load_scene("h3ds", shared_data / "girl", resolution=128)
     b = load_scene("h3ds", shared_data / "girl", resolution=32)
@@ -68,11 +70,13 @@ def test_girl_intrinsics_scale_with_resolution(shared_data):
     assert abs(float(uv[0] - cu)) < 20 and abs(float(uv[1] - cv)) < 30
 
 
+@pytest.mark.slow
 def test_cameras_sphere_npz(shared_data):
     s = load_scene("h3ds", shared_data / "girl", resolution=32, cameras_file="cameras_sphere.npz")
     assert s.capture == "object" and _angle_to_origin_deg(s.c2w).max() < 15.0
 
 
+@pytest.mark.slow
 def test_fangzhou_ignores_colmap_output(shared_data):
     s = load_scene("h3ds", shared_data / "fangzhou_nature", resolution=48)
     assert s.num_images == 100 and s.images.shape[1:3] == (48, 27)
@@ -81,6 +85,7 @@ def test_fangzhou_ignores_colmap_output(shared_data):
     assert _angle_to_origin_deg(s.c2w).max() < 10.0
 
 
+@pytest.mark.slow
 def test_yanan_93_images_100_mattes(shared_data):
     s = load_scene("h3ds", shared_data / "yanan_nature", resolution=48)
     assert s.num_images == 93 and s.masks.shape[0] == 93
@@ -128,6 +133,7 @@ def test_beer_poses_not_forward_facing(shared_data):
     assert detect_capture(fern.c2w, None)[0] == "forward_facing"
 
 
+@pytest.mark.slow
 def test_selfie_loader_uses_existing_colmap_model(shared_data):
     s = load_scene("selfie", shared_data / "yanan_nature", resolution=48)
     assert s.num_images == 93 and s.capture == "object"

@@ -137,6 +137,7 @@ def _blender_scene(dst: Path, K, c2w, splits=(("train", range(0, 24)), ("val", r
     return dst
 
 
+@pytest.mark.slow
 def test_blender_rgba_scene(tmp_path, head):
     ref, K, c2w, S = head
     root = _blender_scene(tmp_path / "lego_like", K, c2w)

@@ -6,24 +6,20 @@ from __future__ import annotations
 import logging
 
 import pytest
-from hydra import compose, initialize_config_dir
-
-from nerfart_plugin.config_paths import config_dir
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import SceneDataModule, default_scene_path
 from nerfart_plugin.data.images import choose_resolution
 from nerfart_plugin.errors import ConfigError
+from pipeline_helpers import composed
 
 
 @pytest.mark.parametrize("kind", ["h3ds", "selfie", "llff", "nerfstudio"])
 def test_config_default_is_auto(kind: str) -> None:
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        assert compose("config", overrides=[f"data={kind}"]).data.resolution == "auto"
+    assert composed(f"data={kind}").data.resolution == "auto"
 
 
 def test_head_default_is_native_256_and_logged(caplog) -> None:
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("config").data
+    cfg = composed().data
     with caplog.at_level(logging.INFO, logger="nerfart_plugin"):
         scene = SceneDataModule(cfg).load()
     assert scene.images.shape[1:3] == (256, 256)
@@ -31,6 +27,7 @@ def test_head_default_is_native_256_and_logged(caplog) -> None:
     assert any("data.resolution=auto: native 256x256" in r.getMessage() for r in caplog.records)
 
 
+@pytest.mark.slow
 def test_selfie_frames_load_at_270x480_with_either_loader(shared_data) -> None:
     """540x960 frames: h3ds (cameras.npz) and selfie (existing COLMAP model) agree on 270x480."""
     a = load_scene("h3ds", shared_data / "yanan_nature", use_masks=False)

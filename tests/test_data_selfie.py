@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 
@@ -18,6 +17,7 @@ from nerfart_plugin.data.selfie import extract_frames, run_sfm, selfie_cache_met
 log = logging.getLogger(__name__)
 
 
+@pytest.mark.slow
 def test_extract_frames_sampling(shared_data, tmp_path):
     frames = extract_frames(shared_data / "video_beer" / "Beer.mp4", tmp_path, fps=15, max_frames=5, long_side=64)
     assert len(frames) == 5

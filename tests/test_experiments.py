@@ -3,16 +3,9 @@
 from __future__ import annotations
 
 import pytest
-from hydra import compose, initialize_config_dir
-
-from nerfart_plugin.config_paths import config_dir
+from pipeline_helpers import composed as _compose
 
 PAPER = {"lambda_dir": 1.0, "lambda_global": 0.2, "lambda_local": 0.1, "lambda_perceptual": 2.0, "lambda_reg": 0.1}
-
-
-def _compose(*overrides: str):
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return compose("config", overrides=list(overrides))
 
 
 @pytest.mark.parametrize(
@@ -34,37 +27,25 @@ def test_experiment_lambdas(name: str, changed: dict) -> None:
     assert exp.directional == ("absolute" if name == "absolute_dir" else "relative")
 
 
-def test_paper_preset_is_the_papers_settings() -> None:
-    cfg = _compose("preset=paper")
-    assert cfg.encoding.name == "frequency"
-    assert cfg.render.num_samples == 192
-    assert cfg.data.resolution is None  # full-resolution views
-
-
-def test_presets_order_by_cost() -> None:
-    samples = [_compose(f"preset={p}").render.num_samples for p in ("draft", "balanced", "paper")]
-    assert samples == sorted(samples) and len(set(samples)) == 3
-
-
 def test_command_line_beats_preset() -> None:
     assert _compose("preset=paper", "render.num_samples=7").render.num_samples == 7
 
 
 def test_ddp_settings_reach_the_trainer_and_stylize_refuses_them() -> None:
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.pipeline import _container, validate_config
+    from nerfart_plugin.pipeline import validate_config
 
     cfg = _compose("stage=reconstruct", "trainer.strategy=ddp", "trainer.devices=4", "trainer.num_nodes=2")
-    validate_config(_container(cfg))  # allowed for the reconstruction stage
+    validate_config(cfg)  # allowed for the reconstruction stage
     with pytest.raises(ConfigError, match="stage=reconstruct only"):
-        validate_config(_container(_compose("stage=all", "prompt=Joker", "trainer.strategy=ddp")))
+        validate_config(_compose("stage=all", "prompt=Joker", "trainer.strategy=ddp"))
 
 
 def test_trainer_gets_strategy_devices_nodes(tmp_path) -> None:
     import torch
 
-    from nerfart_plugin.pipeline import _trainer
+    from nerfart_plugin.fit import build_trainer
 
-    t = _trainer(tmp_path, 3, torch.device("cpu"), [], {"strategy": "auto", "devices": 1, "num_nodes": 1,
-                                                           "precision": "32-true", "log_every_n_steps": 1})
+    t = build_trainer(3, torch.device("cpu"), {"strategy": "auto", "devices": 1, "num_nodes": 1,
+                                                "precision": "32-true", "log_every_n_steps": 1}, run_dir=tmp_path)
     assert t.max_steps == 3 and t.num_nodes == 1 and t.world_size == 1

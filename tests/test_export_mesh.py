@@ -7,9 +7,8 @@ import pytest
 import torch
 import trimesh
 
-from nerfart_plugin import registry
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.export.analytic import DensityFromSDF, SphereSDF, TorusSDF, UnionSDF, chamfer_to_analytic
+from analytic_fields import DensityFromSDF, SphereSDF, TorusSDF, UnionSDF, chamfer_to_analytic
 from nerfart_plugin.export.mesh import EmptyLevelSetError, MeshExtractor, export_mesh, view_directions
 
 
@@ -17,12 +16,6 @@ def extractor(**kw) -> MeshExtractor:
     kw.setdefault("resolution", 48)
     kw.setdefault("show_progress", False)
     return MeshExtractor(**kw)
-
-
-def test_registered_as_exporter():
-    ex = registry.build("exporter", "marching_cubes", resolution=32)
-    assert isinstance(ex, MeshExtractor) and ex.resolution == 32
-    assert "marching_cubes" in registry.names("exporter")
 
 
 def test_sphere_sdf_radius_watertight_outward_coloured():
@@ -148,6 +141,7 @@ def test_export_unknown_suffix(tmp_path):
         MeshExtractor().export(mesh, tmp_path / "mesh.stl")
 
 
+@pytest.mark.slow
 def test_chamfer_to_true_surface_falls_with_resolution():
     field = TorusSDF(0.5, 0.2)
     coarse = chamfer_to_analytic(extractor(resolution=32, color=False).extract(field), field, n_samples=20_000)

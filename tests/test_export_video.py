@@ -15,6 +15,7 @@ def _frames(n: int, h: int, w: int) -> list[np.ndarray]:
     return [np.stack([(xs + 4 * i) % w / w, ys / h, np.full_like(xs, i / n, dtype=float)], -1) for i in range(n)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("size", [(32, 48), (33, 47)])  # odd sizes padded to even
 def test_video_readable_with_right_frame_count(tmp_path, size):
     h, w = size
@@ -29,6 +30,7 @@ def test_video_readable_with_right_frame_count(tmp_path, size):
     assert np.abs(video[5, :h, :w].astype(float) - to_uint8(frames[5]).astype(float)).mean() < 8
 
 
+@pytest.mark.slow
 def test_video_uint8_frames_and_errors(tmp_path):
     frames = [np.full((16, 16, 3), v, np.uint8) for v in (0, 128, 255)]
     video = iio.imread(write_video(frames, tmp_path / "a.mp4", fps=24), plugin="pyav")

@@ -47,8 +47,8 @@ def test_backbone_renders_with_finite_grads(backbone: str, enc: str) -> None:
     assert ((out["opacity"] >= 0) & (out["opacity"] <= 1 + 1e-5)).all()
     loss = (out["rgb"] - 0.3).square().mean()
     if field.is_sdf:
-        assert out["normal"].shape == (R, 3) and out["eikonal"].dim() == 0
-        loss = loss + 0.1 * out["eikonal"]
+        assert out["normal"].shape == (R, 3) and out["regularizers"]["eikonal"].dim() == 0
+        loss = loss + 0.1 * out["regularizers"]["eikonal"]
     loss.backward()
     grads = [p.grad for p in field.parameters() if p.grad is not None]
     assert grads and all(torch.isfinite(g).all() for g in grads)

@@ -37,8 +37,9 @@ def test_gradient_subset_training_forward(backbone: str, extra: dict) -> None:
     assert "gradient_mask" not in full and full["gradient"].norm(dim=-1).min() > 0
     r = VolumeRenderer(field, num_samples=16)
     res = r(_batch(), perturb=True)
-    assert res["eikonal"].dim() == 0 and torch.isfinite(res["eikonal"])
-    (res["rgb"].sum() + res["eikonal"]).backward()
+    eik = res["regularizers"]["eikonal"]
+    assert eik.dim() == 0 and torch.isfinite(eik)
+    (res["rgb"].sum() + eik).backward()
     assert all(torch.isfinite(p.grad).all() for p in field.parameters() if p.grad is not None)
 
 
@@ -127,4 +128,4 @@ def test_colour_only_render_skips_normals_and_matches(backbone: str, extra: dict
         assert "normal" in fast and n_fast == n_full
     with torch.enable_grad():  # with grad the training path is unchanged (eikonal needs the gradient)
         out = r(batch, with_normals=False)
-    assert "eikonal" in out or backbone == "nerf"
+    assert "eikonal" in out["regularizers"] or backbone == "nerf"

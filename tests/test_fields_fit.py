@@ -25,6 +25,7 @@ def _sphere_rays(R: int, gen: torch.Generator, radius: float = 0.5) -> dict:
     return {"rays_o": cam, "rays_d": d, "near": torch.full((R,), 1.0), "far": torch.full((R,), 4.0), "rgb": rgb}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "backbone,encoding,occupancy,factor",
     [("nerf", {"name": "grid", "resolution": 32, "n_components": 8, "out_features": 16}, True, 0.5),
@@ -50,7 +51,7 @@ def test_tiny_fit_lowers_loss(backbone: str, encoding: dict, occupancy: bool, fa
             grid.update(field, step, generator=gen)
         batch = _sphere_rays(128, gen)
         out = r(batch, perturb=True, generator=gen)
-        loss = (out["rgb"] - batch["rgb"]).square().mean() + 0.1 * out.get("eikonal", 0.0)
+        loss = (out["rgb"] - batch["rgb"]).square().mean() + 0.1 * sum(out["regularizers"].values(), torch.zeros(()))
         opt.zero_grad()
         loss.backward()
         opt.step()

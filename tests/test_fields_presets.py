@@ -1,27 +1,31 @@
-"""Presets compose to what they promise, and every backbone builds under each of them."""
+"""Presets compose to what they promise (ordered by cost), and every backbone builds under each of them."""
 
 from __future__ import annotations
 
 import pytest
-from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from nerfart_plugin.config_paths import config_dir
 from nerfart_plugin.fields import build_field
+from pipeline_helpers import composed
 
 
 def _cfg(*overrides: str) -> dict:
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        return OmegaConf.to_container(compose("config", overrides=list(overrides)), resolve=True)
+    return OmegaConf.to_container(composed(*overrides), resolve=True)
 
 
 def test_paper_preset_is_the_papers_settings() -> None:
     c = _cfg("preset=paper", "backbone=neus")
     assert c["encoding"]["name"] == "frequency"
     assert c["backbone"]["hidden_dim"] == 256 and c["backbone"]["n_layers"] == 8
-    assert c["render"]["num_samples"] == 192 and c["data"]["resolution"] is None
+    assert c["render"]["num_samples"] == 192 and c["data"]["resolution"] == "auto"  # the capture's resolution
     assert c["backbone"]["color_normal"] is True and c["backbone"]["grad_samples"] == 1.0
     assert c["backbone"]["alpha_mode"] == "gradient"
+    assert c["stylize"]["resolution"] == "auto" and c["stylize"]["epochs"] == 4
+
+
+def test_presets_order_by_cost() -> None:
+    samples = [_cfg(f"preset={p}")["render"]["num_samples"] for p in ("draft", "balanced", "paper")]
+    assert samples == sorted(samples) and len(set(samples)) == 3
 
 
 def test_draft_is_cheaper_than_balanced() -> None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-import socket
 
 import pytest
 import torch
@@ -26,27 +25,6 @@ def tiny_clip() -> CLIPGuidance:
     g = build_guidance(TINY_CFG)
     assert isinstance(g, CLIPGuidance)
     return g
-
-
-@pytest.fixture
-def no_network(monkeypatch: pytest.MonkeyPatch):
-    """Downloads disabled; any attempt to open a socket or call the HF hub fails the test
-    (recorded and asserted at teardown, so attempts from helper threads count too)."""
-    monkeypatch.delenv(wts.ALLOW_DOWNLOAD_ENV, raising=False)
-    attempts: list[tuple] = []
-
-    def boom(*a, **k):
-        attempts.append(a)
-        raise OSError("network disabled in this test")
-
-    monkeypatch.setattr(socket, "create_connection", boom)
-    import huggingface_hub
-    import open_clip.pretrained
-
-    monkeypatch.setattr(huggingface_hub, "hf_hub_download", boom)
-    monkeypatch.setattr(open_clip.pretrained, "hf_hub_download", boom)
-    yield
-    assert not attempts, f"network access attempted although downloads are disabled: {attempts}"
 
 
 def test_random_clip_embeddings_and_gradients(tiny_clip: CLIPGuidance) -> None:

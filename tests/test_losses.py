@@ -156,12 +156,3 @@ def test_reconstruction_and_psnr() -> None:
     assert losses.psnr(rgb, tgt, mask).item() == pytest.approx(20.0)
     assert losses.reconstruction_loss(rgb, tgt, torch.zeros(2)).item() == 0.0
     assert torch.isfinite(losses.psnr(tgt, tgt))
-
-
-def test_total_style_loss() -> None:
-    terms = {"directional": torch.tensor(2.0), "contrastive": torch.tensor(3.0)}
-    got = losses.total_style_loss(terms, {"directional": 1.0, "contrastive": 0.5, "perceptual": 2.0})
-    assert got.item() == pytest.approx(3.5)
-    assert losses.total_style_loss(terms, {"directional": 0.0, "contrastive": 1.0}).item() == pytest.approx(3.0)
-    with pytest.raises(ConfigError, match="contrastive"):
-        losses.total_style_loss(terms, {"directional": 1.0})

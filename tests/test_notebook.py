@@ -7,6 +7,8 @@ from pathlib import Path
 
 import pytest
 
+from pipeline_helpers import TINY_TOY
+
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
@@ -47,8 +49,9 @@ def test_notebook_structure():
     assert 'GUIDANCE = "toy"' in src  # runs anywhere by default
     text = "\n".join(c.source for c in nb.cells)
     assert (
-        "initialize_config_dir" in text
+        "from nerfart_plugin.factories import load_config" in text
         and "from nerfart_plugin.pipeline import Pipeline" in text
+        and "._" not in text  # the public API only
     )
     assert (
         "render_meshes" in text and 'GUIDANCE = "clip"' in text
@@ -81,9 +84,7 @@ def test_notebook_executes(tmp_path):
             'GUIDANCE = "toy"',
             'BACKBONE = "volsdf"',
             'DEVICE = "cpu"',
-            "OVERRIDES = ['data.resolution=24', 'reconstruct.steps=10', 'reconstruct.val_every=10',",
-            "             'reconstruct.batch_rays=128', 'render.num_samples=8', 'render.occupancy.enabled=false',",
-            "             'stylize.steps=2', 'stylize.resolution=24', 'stylize.video_frames=2', 'export.resolution=24']",
+            f"OVERRIDES = {[o for o in TINY_TOY if not o.startswith(('guidance=', 'backbone='))]!r}",
             "SCREENSHOT_SIZE = (240, 120)",
         ]
     )

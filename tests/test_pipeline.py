@@ -154,16 +154,15 @@ def test_export_stage_writes_meshes_in_every_format(shared_root: Path, small_hea
 
 
 def test_out_of_memory_names_the_settings_to_lower(monkeypatch) -> None:
-    from nerfart_plugin import pipeline as pl
     from nerfart_plugin.errors import NerfArtError
+    from nerfart_plugin.fit import run_fit
 
     class Boom:
         def fit(self, *a, **k):
             raise torch.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
 
-    p = pl.Pipeline.__new__(pl.Pipeline)
     with pytest.raises(NerfArtError, match="stylize.patch_size") as info:
-        p._fit(Boom(), None)
+        run_fit(Boom(), None)
     assert "render.chunk" in str(info.value) and "stylize.resolution" in str(info.value)
 
 

@@ -20,7 +20,7 @@ import pytest
 import torch
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-from nerfart_plugin.errors import CheckpointError, ConfigError, RunInterrupted, RunLockedError
+from nerfart_plugin.errors import CheckpointError, ConfigError, NerfArtError, RunInterrupted, RunLockedError
 from nerfart_plugin.pipeline import Pipeline
 from nerfart_plugin.utils.lock import lock_path
 
@@ -45,6 +45,20 @@ def nerf_final(tmp_path_factory) -> Path:
     return Path(res["reconstruction"]["dir"]) / "final.ckpt"
 
 
+@pytest.mark.slow
+def test_load_run_reads_a_finished_reconstruction_back(nerf_final):
+    from nerfart_plugin.factories import load_run
+
+    run = load_run(nerf_final.parent)
+    assert run.cfg.backbone["name"] == "nerf" and run.cfg.reconstruct.steps == 12 and "psnr" in run.metrics
+    assert run.setup.bound == 1.0 and run.checkpoint == nerf_final
+    rays = {"rays_o": torch.tensor([[0.0, 0.0, -3.0]]), "rays_d": torch.tensor([[0.0, 0.0, 1.0]]),
+            "near": torch.tensor([0.5]), "far": torch.tensor([5.0])}
+    assert torch.isfinite(run.renderer.render_chunked(rays)["rgb"]).all()
+    with pytest.raises(NerfArtError, match="not a run folder"):
+        load_run(nerf_final.parent.parent)
+
+
 def _step(ckpt: Path) -> int:
     return int(torch.load(ckpt, map_location="cpu", weights_only=True)["global_step"])
 
@@ -63,6 +77,7 @@ def _wait_for_checkpoint(pattern: str, root: Path, proc: subprocess.Popen, min_s
 
 
 # ---------------------------------------------------------------------- val_every=0
+@pytest.mark.slow
 def test_val_every_zero_trains_without_validation(tmp_path):
     res = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON, "reconstruct.val_every=0")).run()
     run_dir = Path(res["reconstruction"]["dir"])
@@ -88,6 +103,7 @@ def _hold_lock(run_dir: Path, seconds: float) -> subprocess.Popen:
     return proc
 
 
+@pytest.mark.slow
 def test_a_held_run_folder_stops_or_waits_and_names_the_holder(tmp_path, caplog):
     run_dir = _recon_dir(tmp_path, *RECON)
     holder = _hold_lock(run_dir, 6.0)
@@ -151,6 +167,7 @@ def test_two_processes_on_the_same_run_do_not_collide(tmp_path):
 
 
 # ---------------------------------------------------------------------- unwritable output roots
+@pytest.mark.slow
 def test_output_root_with_a_file_in_the_way_is_a_config_error(tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
@@ -163,6 +180,7 @@ def test_output_root_with_a_file_in_the_way_is_a_config_error(tmp_path):
     assert f"ConfigError: output_root={blocker / 'runs'}: {blocker} is a file" in out
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders (chmod does not stop it)")
 def test_read_only_output_root_is_a_config_error(tmp_path):
     ro = tmp_path / "ro"
@@ -241,6 +259,7 @@ def test_sigint_during_stylization_leaves_a_resumable_run(tmp_path):
     assert _step(next(tmp_path.glob("stylizations/*/final.ckpt"))) == 40
 
 
+@pytest.mark.slow
 def test_ctrl_c_outside_training_is_reported_as_resumable(tmp_path, monkeypatch):
     p = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON))
 
@@ -256,6 +275,7 @@ def test_ctrl_c_outside_training_is_reported_as_resumable(tmp_path, monkeypatch)
 TOY = ["guidance=toy", "prompt=red", "stylize.steps=2", "export.enabled=false", "stylize.video_frames=0"]
 
 
+@pytest.mark.slow
 def test_source_checkpoint_of_another_backbone_names_the_file_and_the_difference(tmp_path, nerf_final):
     for overrides, differs in ((["backbone=volsdf"], "backbone.name: 'nerf' in the checkpoint, 'volsdf' here"),
                                (["backbone=nerf", "backbone.hidden_dim=32"],
@@ -273,6 +293,7 @@ def test_source_checkpoint_of_another_backbone_names_the_file_and_the_difference
     assert not list(tmp_path.glob("stylizations/*"))  # nothing started
 
 
+@pytest.mark.slow
 def test_files_that_are_not_checkpoints_are_clear_errors(tmp_path):
     text = tmp_path / "notes.ckpt"
     text.write_text("not a checkpoint")
@@ -283,6 +304,7 @@ def test_files_that_are_not_checkpoints_are_clear_errors(tmp_path):
             Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=stylize", *TOY, f"source_checkpoint={path}")).run()
 
 
+@pytest.mark.slow
 def test_foreign_and_newer_checkpoints(tmp_path, nerf_final):
     from nerfart_plugin.checkpoints import load_checkpoint
 
@@ -300,6 +322,7 @@ def test_foreign_and_newer_checkpoints(tmp_path, nerf_final):
     assert ckpt["nerfart"]["backbone"]["name"] == "nerf" and ckpt["nerfart"]["version"]
 
 
+@pytest.mark.slow
 def test_an_incompatible_last_ckpt_is_not_resumed(tmp_path, nerf_final):
     import shutil
 
@@ -311,6 +334,7 @@ def test_an_incompatible_last_ckpt_is_not_resumed(tmp_path, nerf_final):
         Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON, "backbone=volsdf")).run()
 
 
+@pytest.mark.slow
 def test_checkpoints_of_version_0_1_0_with_a_scene_setup_object_still_load(tmp_path, nerf_final):
     from nerfart_plugin.checkpoints import load_checkpoint
     from nerfart_plugin.systems.scene_setup import SceneSetup
@@ -341,6 +365,7 @@ def _evil_checkpoint(path: Path, marker: Path, template: Path) -> Path:
     return path
 
 
+@pytest.mark.slow
 def test_a_checkpoint_that_would_run_code_is_refused_and_runs_nothing(tmp_path, nerf_final):
     marker = tmp_path / "PWNED"
     evil = _evil_checkpoint(tmp_path / "evil.ckpt", marker, nerf_final)

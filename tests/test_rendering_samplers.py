@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from nerfart_plugin.fields import OccupancyGrid, build_field
-from nerfart_plugin.rendering import VolumeRenderer, occupancy_samples, ray_aabb, sample_pdf, stratified_samples
+from nerfart_plugin.rendering import VolumeRenderer, occupancy_samples, ray_aabb, stratified_samples
 
 
 def _rays(R: int = 64, seed: int = 0, spread: float = 0.15) -> dict:
@@ -35,18 +35,6 @@ def test_stratified_sorted_within_bounds_and_deterministic() -> None:
     assert torch.equal(a, b) and not torch.equal(a, c)
     # contiguous sections cover [near, far] exactly
     torch.testing.assert_close((a[..., 1] - a[..., 0]).sum(-1), far - near)
-
-
-def test_sample_pdf_follows_pdf() -> None:
-    bins = torch.linspace(0, 1, 11).expand(4, 11)
-    w = torch.zeros(4, 10)
-    w[:, 3] = 1.0  # all mass in [0.3, 0.4]
-    t = sample_pdf(bins, w, 64, perturb=True, generator=torch.Generator().manual_seed(0))
-    assert (t[:, 1:] >= t[:, :-1]).all()
-    assert (t >= 0.3 - 1e-3).float().mean() > 0.99 and (t <= 0.4 + 1e-3).float().mean() > 0.99
-    # all-zero weights fall back to uniform
-    tu = sample_pdf(bins, torch.zeros(4, 10), 10)
-    torch.testing.assert_close(tu[0], torch.linspace(0.05, 0.95, 10), atol=1e-4, rtol=0)
 
 
 def test_ray_aabb() -> None:

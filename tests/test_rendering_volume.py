@@ -6,8 +6,8 @@ import math
 
 import pytest
 import torch
-import torch.nn as nn
 
+from nerfart_plugin.fields.base import Field
 from nerfart_plugin.rendering import VolumeRenderer, neus_alpha, volsdf_density, volume_weights, weights_from_alpha
 
 LN2, LN4 = math.log(2.0), math.log(4.0)
@@ -32,10 +32,9 @@ def test_weights_from_alpha_opaque_sample() -> None:
     assert w[0, 0].item() == 1.0 and w[0, 1].item() < 1e-9 and T[0, 1].item() <= 1.001e-10
 
 
-class _StubField(nn.Module):
+class _StubField(Field):
     """Density field by depth z: sigma = ln2 for z < 2 else ln4; colour red / green / blue by z bin."""
 
-    is_sdf = False
     bound = 100.0
 
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> dict:
@@ -46,9 +45,6 @@ class _StubField(nn.Module):
 
     def alpha(self, out: dict, deltas: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         return 1.0 - torch.exp(-out["sigma"].reshape(deltas.shape) * deltas)
-
-    def regularizers(self, out: dict) -> dict:
-        return {}
 
 
 @pytest.mark.parametrize("dir_scale", [1.0, 2.0])
@@ -119,3 +115,21 @@ def test_neus_alpha_surface_crossing() -> None:
     # far in front of the surface: transparent; zero-length section: transparent
     assert neus_alpha(torch.ones(1, 1), -torch.ones(1, 1), torch.full((1, 1), 0.1), 100.0).item() < 1e-3
     assert neus_alpha(-torch.ones(1, 1), -torch.ones(1, 1), torch.zeros(1, 1), 100.0).item() == 0.0
+
+
+def test_a_custom_field_with_the_plain_forward_contract_renders() -> None:
+    """A Field subclass with only forward(x, d) / alpha / geometry: the base class answers the rest
+    (query without with_normal, density occupancy, no regularizers, no surface width)."""
+    from nerfart_plugin.fields import OccupancyGrid
+
+    r = VolumeRenderer(_StubField(), num_samples=3, clip_to_bound=False)
+    batch = {"rays_o": torch.zeros(2, 3), "rays_d": torch.tensor([[0.0, 0.0, 1.0]] * 2),
+             "near": torch.zeros(2), "far": torch.full((2,), 3.0)}
+    colour_only = r.render_chunked(batch, with_normals=False)
+    torch.testing.assert_close(colour_only["rgb"], r.render_chunked(batch)["rgb"])
+    with torch.enable_grad():
+        assert r(batch)["regularizers"] == {}
+    field = _StubField()
+    field.geometry = lambda x: torch.full((x.shape[0],), 50.0)
+    grid = OccupancyGrid(resolution=4, bound=1.0)
+    assert grid.update(field, 0, force=True) and grid.occupied_fraction == 1.0

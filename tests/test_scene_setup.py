@@ -69,5 +69,5 @@ def test_grid_no_finer_than_the_pixels_resolve() -> None:
 
 @pytest.mark.parametrize("key,value", [("background_model", "sometimes"), ("occ_enabled", "maybe")])
 def test_bad_choice_is_a_config_error(key: str, value: Optional[str]) -> None:
-    with pytest.raises(ConfigError, match="auto, true or false"):
+    with pytest.raises(ConfigError, match="one of auto, true, false"):
         decide_setup(_scene("object", True), _render(**{key: value}), ndc=False)

@@ -8,6 +8,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from nerfart_plugin.fields import build_field
+from nerfart_plugin.fields.base import Field
 from nerfart_plugin.rendering import VolumeRenderer, neus_alpha, volsdf_density, volume_weights, weights_from_alpha
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -69,10 +70,9 @@ def test_neus_alpha_extremes(d: float, cos: float, delta: float, inv_s: float, r
     assert _finite(sdf.grad, c.grad, dl.grad, s.grad)
 
 
-class _ConstField(torch.nn.Module):
+class _ConstField(Field):
     """Constant density ``sigma`` everywhere (leaf parameter so gradients can be checked)."""
 
-    is_sdf = False
     bound = 1.0
 
     def __init__(self, sigma: float) -> None:
@@ -84,9 +84,6 @@ class _ConstField(torch.nn.Module):
 
     def alpha(self, out: dict, deltas: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         return -torch.expm1(-out["sigma"].reshape(deltas.shape).float() * deltas)
-
-    def regularizers(self, out: dict) -> dict:
-        return {}
 
 
 @SETTINGS
@@ -125,7 +122,7 @@ def test_autocast_forward_finite(backbone: str, dtype: torch.dtype) -> None:
     for k in ("rgb", "depth", "opacity"):
         assert _finite(out[k]) and _finite(out_ng[k]), k
     if field.is_sdf:
-        assert _finite(out["normal"], out["eikonal"])
+        assert _finite(out["normal"], out["regularizers"]["eikonal"])
 
 
 @pytest.mark.parametrize("backbone", ["volsdf", "neus"])

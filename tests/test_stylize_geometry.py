@@ -9,7 +9,8 @@ from nerfart_plugin.guidance import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.systems.scene_setup import SceneSetup
-from nerfart_plugin.systems.stylization import StylizationSystem, camera_batch
+from nerfart_plugin.data.rays import camera_batch
+from nerfart_plugin.systems.stylization import StylizationSystem
 
 BACKBONE = {"name": "volsdf", "hidden_dim": 32, "n_layers": 2, "feature_dim": 16, "radius": 0.3,
             "color_hidden_dim": 32, "color_layers": 1, "color_normal": False, "beta_init": 0.01}

@@ -12,26 +12,11 @@ from omegaconf import OmegaConf
 from nerfart_plugin.config_paths import config_dir
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.sweep import collect, complete_results, markdown_table, objective
-from pipeline_helpers import run_cli
+from pipeline_helpers import TINY_TOY, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 
-# Tiny but complete: nerf backbone, 24 px, 10 reconstruction steps, 2 stylization steps.
-TINY = [
-    "guidance=toy",
-    "backbone=nerf",
-    "data.resolution=24",
-    "reconstruct.steps=10",
-    "reconstruct.val_every=10",
-    "reconstruct.batch_rays=128",
-    "render.num_samples=8",
-    "render.occupancy.enabled=false",
-    "export.resolution=24",
-    "stylize.steps=2",
-    "stylize.resolution=24",
-    "stylize.video_frames=2",
-]
-
+TINY = TINY_TOY
 
 _cli = run_cli
 

@@ -9,7 +9,7 @@ from nerfart_plugin.losses import weight_regularization
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.systems.scene_setup import SceneSetup
-from nerfart_plugin.systems.stylization import camera_batch
+from nerfart_plugin.data.rays import camera_batch
 
 
 def _renderer(backbone: str, occupancy: int) -> torch.nn.Module:

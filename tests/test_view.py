@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.export.analytic import SphereSDF, TorusSDF, UnionSDF
+from analytic_fields import SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
 from nerfart_plugin.view import load_mesh, main, render_meshes
 
@@ -31,6 +31,7 @@ def mesh_files(tmp_path_factory) -> dict[str, Path]:
     }
 
 
+@pytest.mark.slow
 def test_opens_on_the_captures_front_view(tmp_path, mesh_files):
     """The viewer reads the run's cameras.json and looks from the capture's front camera with its up
     vector (the shipped head used to open on the underside of the bust). First in this file: loading
@@ -66,6 +67,7 @@ def test_opens_on_the_captures_front_view(tmp_path, mesh_files):
         render_meshes([mesh], screenshot=tmp_path / "c.png", window_size=SIZE, cameras={"front": 0})
 
 
+@pytest.mark.slow
 def test_one_mesh_screenshot_not_blank_and_differs(tmp_path, mesh_files):
     a = render_meshes([mesh_files["sphere"]], screenshot=tmp_path / "a.png", window_size=SIZE)
     b = render_meshes([mesh_files["torus"]], screenshot=tmp_path / "b.png", window_size=SIZE)
@@ -103,52 +105,22 @@ def test_errors_name_the_file(tmp_path):
     assert info.value.code == 2
 
 
+@pytest.mark.slow
 def test_cli_subprocess(tmp_path, mesh_files):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+
+    def view(*args: str, timeout: int = 120) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "nerfart_plugin.view", *args], cwd=tmp_path, env=env,
+                              check=False, capture_output=True, text=True, timeout=timeout)
+
     out = tmp_path / "cli.png"
-    cmd = [
-        sys.executable,
-        "-m",
-        "nerfart_plugin.view",
-        str(mesh_files["sphere"]),
-        str(mesh_files["torus"]),
-        "--screenshot",
-        str(out),
-        "--window-size",
-        "200",
-        "120",
-        "--scalars",
-        "rgb",
-    ]
-    res = subprocess.run(cmd, cwd=tmp_path, env=env, check=False, capture_output=True, text=True, timeout=300)
+    res = view(str(mesh_files["sphere"]), str(mesh_files["torus"]), "--screenshot", str(out), "--window-size",
+               "200", "120", "--scalars", "rgb", timeout=300)
     assert res.returncode == 0, res.stderr
     img = iio.imread(out)
     assert img.shape[:2] == (120, 200) and img.std() > 10
-    help_ = subprocess.run(
-        [sys.executable, "-m", "nerfart_plugin.view", "--help"],
-        cwd=tmp_path,
-        env=env,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    help_ = view("--help")
     assert help_.returncode == 0 and "--screenshot" in help_.stdout
-    bad = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "nerfart_plugin.view",
-            str(tmp_path / "nope.ply"),
-            "--screenshot",
-            str(tmp_path / "x.png"),
-        ],
-        cwd=tmp_path,
-        env=env,
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    bad = view(str(tmp_path / "nope.ply"), "--screenshot", str(tmp_path / "x.png"))
     assert bad.returncode == 2 and "nope.ply" in bad.stderr
 

@@ -51,8 +51,6 @@ def make_scene(
     masks: Optional[np.ndarray],
     c2w: np.ndarray,
     K: np.ndarray,
-    near: np.ndarray,
-    far: np.ndarray,
     names: Sequence[str],
     normalization: np.ndarray,
     capture: str,
@@ -62,12 +60,19 @@ def make_scene(
     opts: dict,
     holdout_every: int = 8,
     split: Optional[tuple[Sequence[int], Sequence[int]]] = None,
+    bounds: Optional[np.ndarray] = None,
 ) -> Scene:
-    """Build, hash and validate a :class:`Scene` from numpy arrays.
+    """Build, hash and validate a :class:`Scene` from numpy arrays (``c2w`` already normalized by
+    ``normalization``); the ray ranges follow the one near/far policy
+    (:func:`~nerfart_plugin.data.normalize.near_far`) from the capture and the depth ``bounds`` [N,2]
+    of the files, if any.
 
     ``split`` = (train ids, val ids) given by the files (e.g. Blender's
     ``transforms_{train,val}.json``); otherwise every ``holdout_every``-th view is held out.
     """
+    from nerfart_plugin.data.normalize import near_far
+
+    near, far = near_far(capture, c2w, bounds, normalization)
     n = len(images)
     train, val = split_ids(n, holdout_every) if split is None else ([int(i) for i in split[0]], [int(i) for i in split[1]])
     f32 = lambda a: torch.from_numpy(np.array(a, dtype=np.float32))  # noqa: E731

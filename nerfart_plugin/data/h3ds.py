@@ -207,22 +207,8 @@ def load_h3ds(
     capture, reason = detect_capture(c2w, masks)
     layout = f"views from {image_dir.name}/" + (f", mattes from {mask_dir.name}/" if mask_paths else "")
     notes.append(f"capture={capture}: {reason}; unit sphere from scale_mat of {cam_path.name}; {layout}")
-    dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
-    near = np.maximum(dist - 1.0, 0.05)
-    far = dist + 1.0
-    return make_scene(
-        images=images,
-        masks=masks,
-        c2w=c2w,
-        K=Ks,
-        near=near,
-        far=far,
-        names=[p.name for p in image_paths],
-        normalization=np.linalg.inv(scales[0]),
-        capture=capture,
-        source=root,
-        notes=notes,
-        hash_paths=[cam_path, *image_paths, *mask_paths],
-        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name),
-        holdout_every=holdout_every,
-    )
+    return make_scene(  # no depth bounds: the unit sphere (from scale_mat) around each camera
+        images=images, masks=masks, c2w=c2w, K=Ks, names=[p.name for p in image_paths],
+        normalization=np.linalg.inv(scales[0]), capture=capture, source=root, notes=notes,
+        hash_paths=[cam_path, *image_paths, *mask_paths], holdout_every=holdout_every,
+        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name))

@@ -224,25 +224,9 @@ def load_llff(
         T = unit_sphere_from_cameras(pb.c2w, near=pb.bounds[:, 0])
         notes.append(f"capture={capture} ({reason}); look-at region scaled into the unit sphere")
     c2w = apply_similarity(T, pb.c2w)
-    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    near, far = pb.bounds[:, 0] * s, pb.bounds[:, 1] * s
-    if capture != "forward_facing":
-        near = np.maximum(near * 0.9, 1e-3)
-        far = far * 1.1
     return make_scene(
-        images=images,
-        masks=masks,
-        c2w=c2w,
-        K=K,
-        near=near,
-        far=far,
-        names=[p.name for p in image_paths],
-        normalization=T,
-        capture=capture,
-        source=root,
-        notes=notes,
-        hash_paths=[pb_path, *image_paths, *mask_paths],
+        images=images, masks=masks, c2w=c2w, K=K, names=[p.name for p in image_paths], normalization=T,
+        capture=capture, source=root, notes=notes, hash_paths=[pb_path, *image_paths, *mask_paths],
+        bounds=pb.bounds, holdout_every=holdout_every,
         opts=dict(kind="llff", factor=factor, size=(w1, h1), use_masks=use_masks, bd_factor=bd_factor,
-                  capture=capture),
-        holdout_every=holdout_every,
-    )
+                  capture=capture))

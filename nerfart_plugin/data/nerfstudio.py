@@ -500,15 +500,6 @@ def _common_size(frames: list[Frame]) -> tuple[int, int]:
     return first.camera.w, first.camera.h
 
 
-def _near_far(c2w: np.ndarray, T: np.ndarray, bounds: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Forward-facing: the box depth bounds in normalized units; else the unit sphere along each ray."""
-    if bounds is not None:
-        s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-        return bounds[:, 0] * s, bounds[:, 1] * s
-    dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
-    return np.maximum(dist - 1.0, 0.05), dist + 1.0
-
-
 def _background(background: Optional[Sequence[float]]) -> tuple[float, float, float]:
     if background is None:
         return (1.0, 1.0, 1.0)
@@ -567,7 +558,6 @@ def load_nerfstudio(
     c2w0 = np.stack([f.c2w for f in frames])
     capture, T, bounds = normalization(c2w0, masks, scene_box(meta, files[0][1], notes), notes, capture)
     c2w = apply_similarity(T, c2w0[:, :3, :4])
-    near, far = _near_far(c2w, T, bounds)
     K = np.stack([f.camera.K for f in frames])
     K[:, 0, :] *= W1 / W0
     K[:, 1, :] *= H1 / H0
@@ -575,7 +565,7 @@ def load_nerfstudio(
     if split is not None:
         notes.append(f"split from the files: {len(split[0])} train / {len(split[1])} held-out views")
     return make_scene(
-        images=images, masks=masks, c2w=c2w, K=K, near=near, far=far,
+        images=images, masks=masks, c2w=c2w, K=K, bounds=bounds,
         names=[_relative(f.image, root) for f in frames], normalization=T, capture=capture, source=root, notes=notes,
         hash_paths=sorted({p for _, p in files} | {f.image for f in frames} | {f.mask for f in frames if f.mask}),
         opts=dict(kind="nerfstudio", size=(W1, H1), masks=mask_source, splits=list(splits), capture=capture,

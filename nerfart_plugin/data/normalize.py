@@ -158,3 +158,24 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     s = float(np.trace(np.diag(S) @ D) / max(var_s, 1e-12))
     t = mu_d - s * R @ mu_s
     return s, R, t
+
+
+def near_far(capture: str, c2w: np.ndarray, bounds: Optional[np.ndarray] = None,
+             T: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
+    """The one near/far policy of the loaders: per-view ray ranges [N] in normalized units.
+
+    * objects (and any capture without depth bounds): the unit sphere around each camera,
+      ``near = max(|c| - 1, 0.05)``, ``far = |c| + 1`` (``c2w`` [N,3|4,4] already normalized);
+    * forward-facing: the depth ``bounds`` [N,2] (file units) scaled by ``T``'s scale, exactly
+      (NDC rendering uses near = 0, far = 1 anyway);
+    * unbounded with bounds: those, 10% wider (``far`` at least 1% beyond ``near``).
+    """
+    if capture == "object" or bounds is None:
+        dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
+        return np.maximum(dist - 1.0, 0.05), dist + 1.0
+    s = float(np.cbrt(np.linalg.det(T[:3, :3]))) if T is not None else 1.0
+    near, far = bounds[:, 0] * s, bounds[:, 1] * s
+    if capture == "forward_facing":
+        return near, far
+    near = np.maximum(near * 0.9, 1e-3)
+    return near, np.maximum(far * 1.1, near * 1.01)

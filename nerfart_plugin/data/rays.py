@@ -157,3 +157,33 @@ def rays_for_views(
     if len(ids) == 1:
         batch["H"], batch["W"] = int(H), int(W)
     return batch
+
+
+def camera_batch(K: torch.Tensor, c2w: torch.Tensor, H: int, W: int, near: float, far: float,
+                 ndc: bool) -> dict:
+    """Ray batch of one camera (intrinsics ``K`` [3,3] already at H x W, ``c2w`` [3,4]): ``rays_o`` /
+    ``rays_d`` [H*W,3], ``near`` / ``far`` [H*W] (NDC: 0 and 1), plus ints ``H``, ``W``."""
+    o, d = pixel_rays(K, c2w, H, W)
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    n = o.shape[0]
+    if ndc:
+        o, d = ndc_rays(o, d, K, 1.0, H=H, W=W)
+        near, far = 0.0, 1.0
+    return {"rays_o": o.float(), "rays_d": d.float(), "near": torch.full((n,), float(near)),
+            "far": torch.full((n,), float(far)), "H": int(H), "W": int(W)}
+
+
+def views_at_resolution(scene: "Scene", ids: Sequence[int], resolution: int, ndc: bool) -> list[dict]:
+    """Ray batches (:func:`camera_batch`, plus ``view_id``) of the views ``ids`` with the long side resized
+    to ``resolution`` pixels (the stylization views)."""
+    s = resolution / max(scene.height, scene.width)
+    H, W = max(1, round(scene.height * s)), max(1, round(scene.width * s))
+    views = []
+    for i in ids:
+        K = scene.K[i].clone()
+        K[0] *= W / scene.width
+        K[1] *= H / scene.height
+        b = camera_batch(K, scene.c2w[i], H, W, float(scene.near[i]), float(scene.far[i]), ndc)
+        b["view_id"] = int(i)
+        views.append(b)
+    return views

@@ -486,27 +486,8 @@ def load_selfie(
     else:
         T = unit_sphere_from_points(model.points, model.c2w)
     c2w = apply_similarity(T, model.c2w)
-    s = float(np.cbrt(np.linalg.det(T[:3, :3])))
-    if capture == "object":
-        dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)
-        near, far = np.maximum(dist - 1.0, 0.05), dist + 1.0
-    else:
-        near = np.maximum(bounds[:, 0] * s * (1.0 if capture == "forward_facing" else 0.9), 1e-3)
-        far = np.maximum(bounds[:, 1] * s * (1.0 if capture == "forward_facing" else 1.1), near * 1.01)
     notes.append(f"capture={capture} ({reason})")
     return make_scene(
-        images=images,
-        masks=masks,
-        c2w=c2w,
-        K=K,
-        near=near,
-        far=far,
-        names=model.names,
-        normalization=T,
-        capture=capture,
-        source=root,
-        notes=notes,
-        hash_paths=[*files, *paths, *mask_paths],
-        opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture),
-        holdout_every=holdout_every,
-    )
+        images=images, masks=masks, c2w=c2w, K=K, names=model.names, normalization=T, capture=capture,
+        source=root, notes=notes, hash_paths=[*files, *paths, *mask_paths], bounds=bounds,
+        holdout_every=holdout_every, opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture))

@@ -1,7 +1,4 @@
-"""Mesh extraction (marching cubes), mesh comparison and video/image writers.
-
-Importing this package registers the exporter ``"marching_cubes"``.
-"""
+"""Mesh extraction (marching cubes), mesh comparison and video/image writers."""
 
 from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 from nerfart_plugin.export.mesh import EmptyLevelSetError, MeshExtractor, export_mesh, remove_small_components

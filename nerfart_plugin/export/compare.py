@@ -27,6 +27,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from nerfart_plugin.errors import ConfigError, DataError
+from nerfart_plugin.fields.base import Field
 
 log = logging.getLogger(__name__)
 
@@ -113,18 +114,18 @@ class SurfaceDistance:
 def evaluate_sdf(source_sdf: SdfLike, points: np.ndarray, chunk: int = 65_536) -> np.ndarray:
     """Evaluate an SDF on points [P,3] -> [P] (numpy float64).
 
-    ``source_sdf`` is a Field (uses ``.geometry``; must be an SDF field), or any
+    ``source_sdf`` is a Field (its ``signed_distance()``; it must have one: volsdf/neus), or any
     callable taking a float32 tensor [N,3] (or numpy array) and returning [N].
     """
     fn = source_sdf
     device = torch.device("cpu")
-    if hasattr(source_sdf, "geometry"):
-        if not getattr(source_sdf, "mesh_inside_is_below", True) or getattr(source_sdf, "is_sdf", True) is False:
+    if isinstance(source_sdf, Field):
+        fn = source_sdf.signed_distance()
+        if fn is None:
             raise ConfigError(
                 "source_sdf is a density field; signed distances need an SDF field (volsdf/neus) or "
                 "an SDF callable. Pass source_sdf=None for unsigned distances."
             )
-        fn = source_sdf.geometry
         from nerfart_plugin.export.mesh import field_device
 
         device = field_device(source_sdf)

@@ -1,8 +1,6 @@
-"""Marching-cubes mesh extraction from a Field's geometry, with vertex colours.
+"""Marching-cubes mesh extraction from a Field's geometry, with vertex colours::
 
-Registered as exporter ``"marching_cubes"``::
-
-    ex = registry.build("exporter", "marching_cubes", resolution=256, bound=1.0)
+    ex = MeshExtractor(resolution=256, bound=1.0)
     mesh = ex.extract(field)            # trimesh.Trimesh in world coordinates
     ex.export(mesh, "out/mesh.ply")     # .ply | .obj | .glb, written atomically
 
@@ -21,9 +19,8 @@ Peak memory is ``resolution**3 * 4`` bytes for the volume (512**3 -> 512 MiB,
 256**3 -> 64 MiB) plus one chunk of points/activations (``chunk * 16`` bytes of
 coordinates+values plus the field's own activations for ``chunk`` points) plus the
 output mesh (O(resolution**2) vertices). Nothing of size resolution**3 besides
-the volume is ever allocated. Measured on CPU for the benchmark torus at 512:
-+545 MiB resident after grid evaluation, +123 MiB during marching cubes
-(372k vertices), i.e. ~1.3 GiB peak including ~0.5 GiB for importing torch.
+the volume is ever allocated. Measured time and memory: ``BENCHMARKS.md``
+(mesh extraction section, ``benchmarks/mesh_extraction.py``).
 """
 
 from __future__ import annotations
@@ -42,7 +39,6 @@ from skimage.measure import marching_cubes
 from tqdm.auto import tqdm
 
 from nerfart_plugin.errors import ConfigError, NerfArtError
-from nerfart_plugin.registry import register
 from nerfart_plugin.utils.io import atomic_path
 
 log = logging.getLogger(__name__)
@@ -74,7 +70,6 @@ def _grid_points(lin: torch.Tensor, start: int, end: int) -> torch.Tensor:
     return torch.stack([lin[i], lin[j], lin[k]], dim=-1)
 
 
-@register("exporter", "marching_cubes")
 class MeshExtractor:
     """Extract a coloured triangle mesh from ``field.geometry`` with marching cubes.
 

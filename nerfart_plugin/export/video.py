@@ -21,16 +21,19 @@ from nerfart_plugin.utils.io import atomic_path
 log = logging.getLogger(__name__)
 
 
-def to_uint8(frame: np.ndarray) -> np.ndarray:
-    """HxW, HxWx1, HxWx3 or HxWx4 uint8/float image -> HxWx3 uint8 (floats taken in [0,1])."""
-    a = np.asarray(frame)
-    if hasattr(frame, "detach"):  # torch tensor
-        a = frame.detach().cpu().numpy()
+def to_uint8(frame: np.ndarray, normalize: bool = False) -> np.ndarray:
+    """The project's one image converter: HxW, HxWx1, HxWx3 or HxWx4 uint8/float image (numpy or torch)
+    -> HxWx3 uint8 (floats taken in [0,1], rounded). ``normalize``: a one-channel float image (a depth
+    map) is first scaled to its own min..max."""
+    a = np.asarray(frame) if not hasattr(frame, "detach") else frame.detach().float().cpu().numpy()
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3 or a.shape[2] not in (1, 3, 4):
         raise DataError(f"Expected an HxWx3 image, got shape {a.shape}; pass RGB frames (H, W, 3).")
     if a.shape[2] == 1:
+        if normalize and np.issubdtype(a.dtype, np.floating):
+            lo, hi = float(np.nanmin(a)), float(np.nanmax(a))
+            a = (a - lo) / max(hi - lo, 1e-8)
         a = np.repeat(a, 3, axis=2)
     a = a[..., :3]
     if a.dtype == np.uint8:

@@ -10,7 +10,7 @@ from typing import Any, Optional
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields import encodings, nerf, neus, volsdf  # noqa: F401  (registration)
 from nerfart_plugin.fields.background import EnvironmentMap, build_background
-from nerfart_plugin.fields.base import Field, SDFField
+from nerfart_plugin.fields.base import Field, NeuralField, SDFField
 from nerfart_plugin.fields.encodings import build_encoding
 from nerfart_plugin.fields.nerf import NeRFField
 from nerfart_plugin.fields.neus import NeuSField
@@ -18,7 +18,7 @@ from nerfart_plugin.fields.occupancy import OccupancyGrid
 from nerfart_plugin.fields.volsdf import VolSDFField
 
 __all__ = [
-    "Field", "SDFField", "NeRFField", "VolSDFField", "NeuSField", "EnvironmentMap", "OccupancyGrid",
+    "Field", "NeuralField", "SDFField", "NeRFField", "VolSDFField", "NeuSField", "EnvironmentMap", "OccupancyGrid",
     "build_field", "build_encoding", "build_background",
 ]
 

@@ -1,9 +1,11 @@
 """The ``Field`` contract shared by all backbones, plus MLP building blocks.
 
 A field maps points x [N,3] (world units, inside [-bound, bound]^3) and unit
-view directions d [N,3] to colour and geometry. The renderer only calls
-``forward`` and ``alpha``; mesh extraction and the occupancy grid only call
-``geometry``. See ``.dev/CONTEXT.md`` ("Field").
+view directions d [N,3] to colour and geometry. The renderer calls ``query``,
+``alpha`` and ``regularizers``; the occupancy grid ``cell_occupancy`` and
+``surface_width``; mesh export ``geometry`` and ``forward``; the stages
+``signed_distance``, the parameter groups and ``scalars``. See
+``docs/architecture.md`` ("The field contract").
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ from torch import Tensor
 
 from nerfart_plugin.config_types import Depth, Fraction, Limits, PositiveFloat, Width
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.fields.encodings import Encoding, TensorVMGridEncoding, build_encoding
+from nerfart_plugin.fields.encodings import Encoding, build_encoding
 
-__all__ = ["Field", "SDFField", "make_mlp", "GeometricInitMLP"]
+__all__ = ["Field", "NeuralField", "SDFField", "make_mlp", "GeometricInitMLP"]
 
 
 def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, n_hidden_layers: int, act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
@@ -101,22 +103,112 @@ class GeometricInitMLP(nn.Module):
 
 
 class Field(nn.Module):
-    """Base class of all backbones (see the contract in ``.dev/CONTEXT.md``).
+    """The field contract: everything the renderer, the occupancy grid, mesh export and the
+    training stages ask of a backbone (``docs/architecture.md``). Nothing outside
+    ``fields/`` branches on the backbone: what differs is answered here.
+
+    A field maps points x [N,3] (world units, inside [-bound, bound]^3) and unit view
+    directions d [N,3] to colour and geometry. A custom field only needs ``forward(x, d)``,
+    ``alpha`` and ``geometry``; every other method has a default that fits a density field.
+
+    Attributes:
+        is_sdf: True for SDF backbones (for the fields' own use and for reports).
+        bound: half side of the scene box [-bound, bound]^3.
+        mesh_level / mesh_inside_is_below: iso-level of ``geometry`` for meshing.
+        occupancy_threshold: score above which the occupancy grid marks a cell occupied
+            (None: the grid's adaptive density threshold).
+        regularizer_names: the terms :meth:`regularizers` returns while training.
+    """
+
+    is_sdf: bool = False
+    bound: float = 1.0
+    mesh_level: float = 0.0
+    mesh_inside_is_below: bool = True
+    occupancy_threshold: Optional[float] = None
+
+    # ---- what the renderer calls ----------------------------------------------------------
+    def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:  # pragma: no cover
+        """x [N,3], d [N,3] unit -> ``rgb`` [N,3] in [0,1] plus what :meth:`alpha` reads (``sigma`` [N]
+        or ``sdf`` [N], ...); ``normal`` [N,3] when the field has normals."""
+        raise NotImplementedError
+
+    def query(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:
+        """What the renderer calls. ``with_normal=False``: the caller needs no normals (a colour-only
+        no-grad render), so a field may skip work that only normals need. Default: ``forward(x, d)``
+        (a field with the plain contract renders its normals, if any, every time)."""
+        return self(x, d)
+
+    def alpha(self, out: dict[str, Tensor], deltas: Tensor, dirs: Tensor) -> Tensor:  # pragma: no cover
+        """Section opacities [R,K] from the ``query`` output reshaped to ``deltas`` [R,K] (world lengths)."""
+        raise NotImplementedError
+
+    def regularizers(self, out: dict[str, Tensor]) -> dict[str, Tensor]:
+        """Regularizer terms (0-dim tensors) of a training ``query`` output, named as in
+        :attr:`regularizer_names`; a stage weighs each by its ``lambda_<name>`` when its config has one,
+        else by 1 (the component weighs it itself, e.g. ``encoding.tv_weight``)."""
+        return {}
+
+    @property
+    def regularizer_names(self) -> tuple[str, ...]:
+        return ()
+
+    # ---- geometry: the occupancy grid, mesh export, geometry metrics -----------------------
+    def geometry(self, x: Tensor) -> Tensor:  # pragma: no cover
+        """The scalar field that defines the shape, [N]: density (1/world units) or signed distance."""
+        raise NotImplementedError
+
+    def cell_occupancy(self, x: Tensor, cell_size: float, band: float) -> Tensor:
+        """Occupancy evidence [N] in [0,1] at one random point x [N,3] per occupancy cell of side
+        ``cell_size`` (world units). Default (density): the opacity of one cell, ``1 - exp(-sigma cell_size)``;
+        ``band`` (the half-width of the sampled shell, world units) is for SDF fields."""
+        return -torch.expm1(-self.geometry(x).float().clamp_min(0) * cell_size)
+
+    def surface_width(self) -> float:
+        """Current thickness scale of the rendered surface (world units; 0 = sharp or no surface)."""
+        return 0.0
+
+    def signed_distance(self) -> Optional[Any]:
+        """The signed distance function x [N,3] -> [N] (world units) if the geometry is one, else None."""
+        return None
+
+    # ---- training ------------------------------------------------------------------------
+    def update_step(self, global_step: int, total_steps: int) -> None:
+        """Advance training schedules (no-op by default)."""
+
+    def grid_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters trained at the grid learning rate (``reconstruct.lr``); none by default."""
+        return iter(())
+
+    @property
+    def mlp_lr_scale(self) -> float:
+        """Factor on the MLP learning rate (``reconstruct.lr_mlp``) for this field's other parameters."""
+        return 1.0
+
+    def geometry_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters defining the shape (frozen by ``stylize.freeze_geometry``): all but the colour net's."""
+        color = {id(p) for p in self.color_parameters()}
+        return (p for p in self.parameters() if id(p) not in color)
+
+    def color_parameters(self) -> Iterator[nn.Parameter]:
+        """Parameters of the view-dependent colour net only (none by default)."""
+        return iter(())
+
+    def scalars(self) -> dict[str, float]:
+        """Scalars worth logging while training (e.g. VolSDF's beta as ``train/beta``)."""
+        return {}
+
+    def extra_repr(self) -> str:
+        return f"bound={self.bound}, is_sdf={self.is_sdf}"
+
+
+class NeuralField(Field):
+    """A field of MLPs on an encoding (the base of every shipped backbone).
 
     Common config (every backbone): ``feature_dim`` (geometry feature size fed
     to the colour net, default 15), ``hidden_dim`` (64), ``n_layers`` (hidden
     layers of the geometry net, 2), ``color_hidden_dim`` (64), ``color_layers``
     (2), ``dir_encoding`` (dict, default ``{"name": "sh", "degree": 4}``).
-
-    Attributes:
-        is_sdf: True for SDF backbones.
-        bound: half side of the scene box [-bound, bound]^3.
-        mesh_level / mesh_inside_is_below: iso-level of ``geometry`` for meshing.
     """
-
-    is_sdf: bool = False
-    mesh_level: float = 0.0
-    mesh_inside_is_below: bool = True
 
     def __init__(
         self,
@@ -139,44 +231,30 @@ class Field(nn.Module):
         self.color_hidden_dim = int(color_hidden_dim)
         self.color_layers = int(color_layers)
 
-    # ---- contract -------------------------------------------------------------------------
-    def forward(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:  # pragma: no cover
-        """``with_normal=False``: the caller needs no normals (e.g. a colour-only no-grad render);
-        a field may then skip work that only normals need."""
-        raise NotImplementedError
-
-    def alpha(self, out: dict[str, Tensor], deltas: Tensor, dirs: Tensor) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
-
-    def geometry(self, x: Tensor) -> Tensor:  # pragma: no cover
-        raise NotImplementedError
-
     def regularizers(self, out: dict[str, Tensor]) -> dict[str, Tensor]:
-        """Regularizer terms (scalars) for the last ``forward`` output; encoding terms included."""
+        """The encoding's parameter regularizers (e.g. ``grid_tv``, already weighted by ``tv_weight``)."""
         return dict(self.encoding.regularizers())
 
-    def update_step(self, global_step: int, total_steps: int) -> None:
-        """Advance training schedules (no-op by default)."""
+    @property
+    def regularizer_names(self) -> tuple[str, ...]:
+        return self.encoding.regularizer_names
 
-    def geometry_parameters(self) -> Iterator[nn.Parameter]:
-        """Parameters defining the shape (encoding, geometry net, sharpness params)."""
-        color = {id(p) for p in self.color_parameters()}
-        return (p for p in self.parameters() if id(p) not in color)
+    def grid_parameters(self) -> Iterator[nn.Parameter]:
+        return self.encoding.parameters()
+
+    @property
+    def mlp_lr_scale(self) -> float:
+        return float(self.encoding.mlp_lr_scale)
 
     def color_parameters(self) -> Iterator[nn.Parameter]:
-        """Parameters of the view-dependent colour net only."""
         return iter(list(self.color_net.parameters()) + list(self.dir_encoding.parameters()))
 
-    # ---- helpers --------------------------------------------------------------------------
     def _color(self, feats: list[Tensor], d: Tensor) -> Tensor:
         h = torch.cat(feats + [self.dir_encoding(d).to(feats[0].dtype)], dim=-1)
         return torch.sigmoid(self.color_net(h).float())
 
-    def extra_repr(self) -> str:
-        return f"bound={self.bound}, is_sdf={self.is_sdf}"
 
-
-class SDFField(Field):
+class SDFField(NeuralField):
     """Shared machinery of SDF backbones (VolSDF, NeuS).
 
     Geometry net: ``GeometricInitMLP`` on ``[x, encoding(x)]`` (config
@@ -209,6 +287,7 @@ class SDFField(Field):
     is_sdf = True
     mesh_level = 0.0
     mesh_inside_is_below = True
+    occupancy_threshold = 0.5  # cell_occupancy is 0 or 1: occupied while the shell touched it recently
 
     # Regular tetrahedron vertices: sum v = 0, sum v v^T = 4 I  =>  grad g ~ sum_i v_i g(x + h v_i) / (4h).
     _TETRA = ((1.0, -1.0, -1.0), (-1.0, -1.0, 1.0), (-1.0, 1.0, -1.0), (1.0, 1.0, 1.0))
@@ -229,7 +308,7 @@ class SDFField(Field):
         self.color_normal = bool(color_normal)
         self.grad_samples = float(grad_samples)
         if grad_type == "auto":
-            grad_type = "finite_difference" if isinstance(self.encoding, TensorVMGridEncoding) else "analytic"
+            grad_type = "finite_difference" if self.encoding.slow_double_backward else "analytic"
         self.grad_type = grad_type
         self.fd_eps = float(fd_eps) if fd_eps is not None else 1e-3 * self.bound
         self.register_buffer("_tetra", torch.tensor(self._TETRA), persistent=False)
@@ -336,9 +415,19 @@ class SDFField(Field):
         rgb = self._color([feat, normal] if self.color_normal else [feat], d)
         return {"rgb": rgb, "sdf": sdf, "gradient": gradient, "normal": normal}
 
-    def surface_width(self) -> float:
-        """Current thickness scale of the rendered surface (world units; 0 = sharp). Used by the occupancy grid."""
-        return 0.0
+    def query(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:
+        return self(x, d, with_normal=with_normal)
+
+    def cell_occupancy(self, x: Tensor, cell_size: float, band: float) -> Tensor:
+        """1 where ``|sdf| < band`` (the cell is near the surface), else 0: deep inside is hidden behind it."""
+        return (self.geometry(x).float().abs() < band).float()
+
+    def signed_distance(self) -> Any:
+        return self.geometry
+
+    @property
+    def regularizer_names(self) -> tuple[str, ...]:
+        return ("eikonal", *self.encoding.regularizer_names)
 
     def regularizers(self, out: dict[str, Tensor]) -> dict[str, Tensor]:
         """``eikonal``: mean over samples of ``(|grad sdf| - 1)^2``; plus encoding terms."""

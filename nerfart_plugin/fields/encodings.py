@@ -7,8 +7,7 @@ Position encodings take points x [N,3] in world units inside [-bound, bound]^3
 
 from __future__ import annotations
 
-import math
-from typing import Annotated, Optional, Sequence, Union
+from typing import Annotated, Optional, Union
 
 import torch
 import torch.nn as nn
@@ -33,10 +32,18 @@ class Encoding(nn.Module):
     n_input_dims: int = 3
     n_output_dims: int
     mlp_lr_scale: float = 1.0
+    #: its backward has no fast backward of its own (``grid_sample`` on CPU): SDF fields on it take
+    #: gradients by finite differences (``grad_type=auto``)
+    slow_double_backward: bool = False
 
     def regularizers(self) -> dict[str, Tensor]:
-        """Optional parameter regularizers (e.g. grid total variation)."""
+        """Parameter regularizers (0-dim tensors, weighted by the encoding's own settings), named as in
+        :attr:`regularizer_names`."""
         return {}
+
+    @property
+    def regularizer_names(self) -> tuple[str, ...]:
+        return ()
 
 
 @register("encoding", "frequency")
@@ -149,7 +156,14 @@ class TensorVMGridEncoding(Encoding):
         out = torch.cat(feats, -1) if len(feats) > 1 else feats[0]
         return self.basis(out) if self.basis is not None else out
 
+    slow_double_backward = True
+
+    @property
+    def regularizer_names(self) -> tuple[str, ...]:
+        return ("grid_tv",) if self.tv_weight > 0 else ()
+
     def regularizers(self) -> dict[str, Tensor]:
+        """``grid_tv``: ``tv_weight`` x the mean squared difference of neighbouring plane cells (total variation)."""
         if self.tv_weight <= 0:
             return {}
         tv = sum(

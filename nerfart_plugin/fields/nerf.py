@@ -10,7 +10,7 @@ from torch import Tensor
 
 from nerfart_plugin.config_types import Float, Limits
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.fields.base import Field, make_mlp
+from nerfart_plugin.fields.base import NeuralField, make_mlp
 from nerfart_plugin.registry import register
 
 __all__ = ["NeRFField", "trunc_exp"]
@@ -43,7 +43,7 @@ def trunc_exp(x: Tensor) -> Tensor:
 
 
 @register("backbone", "nerf")
-class NeRFField(Field):
+class NeRFField(NeuralField):
     """Density field: ``sigma = act(raw + density_bias)``, ``rgb = sigmoid(MLP([feat, SH(d)]))``.
 
     Config (besides the common ``Field`` keys): ``density_activation``
@@ -104,8 +104,8 @@ class NeRFField(Field):
         """Density sigma [N] >= 0 (1/world units)."""
         return self._density(self._geo(x)[..., 0])
 
-    def forward(self, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:
-        """x [N,3], d [N,3] unit -> ``rgb`` [N,3] in [0,1], ``sigma`` [N] >= 0 (no normals: ``with_normal`` unused)."""
+    def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
+        """x [N,3], d [N,3] unit -> ``rgb`` [N,3] in [0,1], ``sigma`` [N] >= 0 (no normals)."""
         h = self._geo(x)
         sigma = self._density(h[..., 0])
         rgb = self._color([h[..., 1:]], d)

@@ -22,14 +22,15 @@ class OccupancyGrid(nn.Module):
     """A ``resolution^3`` grid over [-bound, bound]^3 marking where the field is non-empty.
 
     Each cell keeps a score updated every ``update_every`` training steps from
-    ``field.geometry`` at one random point per cell, with the nerfacc rule
+    ``field.cell_occupancy`` at one random point per cell (the field contract: the grid
+    never asks which backbone it is), with the nerfacc rule
     ``score = max(score * ema_decay, new)``, and ``occupied = score > threshold``.
 
     * density fields: ``new = 1 - exp(-sigma * cell_size)`` (opacity of one cell),
       threshold ``clamp(mean score, min_threshold, threshold)`` (defaults 1e-4, 0.01:
       nerfacc's ``min(threshold, mean)`` plus a floor so that an empty field
       does not mark the above-mean half of its ~0-density cells occupied);
-    * SDF fields: ``new = 1`` if ``|sdf| < sdf_band`` else 0, i.e. occupied near
+    * SDF fields (``field.occupancy_threshold`` 0.5): ``new = 1`` if ``|sdf| < band`` else 0, i.e. occupied near
       the surface; ``sdf_band`` defaults to one cell diagonal (a cell that the
       zero level set crosses has every point within one diagonal of it, so a
       true SDF never misses it), widened to ``band_widths`` (default 3) times
@@ -97,7 +98,7 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def update(self, field: "Field", step: int, force: bool = False, generator: Optional[torch.Generator] = None) -> bool:
-        """Refresh from ``field.geometry`` if ``step % update_every == 0`` (or ``force``). Returns True if updated."""
+        """Refresh from ``field.cell_occupancy`` if ``step % update_every == 0`` (or ``force``). Returns True if updated."""
         if not force and step % self.update_every != 0:
             return False
         device = self.score.device
@@ -108,17 +109,15 @@ class OccupancyGrid(nn.Module):
             rand = torch.randperm(n, device=device)[: n // 4]
             idx = torch.unique(torch.cat([rand, self.occupied.nonzero()[:, 0]]))
         new = torch.empty(idx.shape[0], device=device)
-        band = self.band(field) if field.is_sdf else 0.0
+        band = self.band(field)
         for s in range(0, idx.shape[0], self.chunk):
             pts = self._cell_points(idx[s : s + self.chunk], generator)
-            geo = field.geometry(pts).float()
-            if field.is_sdf:
-                new[s : s + self.chunk] = (geo.abs() < band).float()
-            else:
-                new[s : s + self.chunk] = -torch.expm1(-geo.clamp_min(0) * self.cell_size)
+            new[s : s + self.chunk] = field.cell_occupancy(pts, self.cell_size, band)
         new = torch.nan_to_num(new, nan=1.0)  # a NaN field must not silently empty the grid
         self.score[idx] = torch.maximum(self.score[idx] * self.ema_decay, new)
-        thr = 0.5 if field.is_sdf else min(self.threshold, max(self.min_threshold, float(self.score.mean())))
+        thr = field.occupancy_threshold
+        if thr is None:  # density evidence: nerfacc's min(threshold, mean) with a floor
+            thr = min(self.threshold, max(self.min_threshold, float(self.score.mean())))
         occupied = self.score > thr
         if not bool(occupied.any()):
             # An empty grid is absorbing: no samples -> no gradient -> the field can never bring
@@ -142,8 +141,7 @@ class OccupancyGrid(nn.Module):
         weight and gradient, and the surface must be able to move there, so
         the band follows the field's current width and shrinks as it sharpens.
         """
-        width = float(getattr(field, "surface_width", lambda: 0.0)())
-        return max(self.sdf_band, self.band_widths * width)
+        return max(self.sdf_band, self.band_widths * float(field.surface_width()))
 
     @property
     def occupied_fraction(self) -> float:

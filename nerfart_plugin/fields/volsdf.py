@@ -53,6 +53,9 @@ class VolSDFField(SDFField):
         """beta (world units): the Laplace density falls by e per beta away from the surface."""
         return float(self.beta.detach())
 
+    def scalars(self) -> dict[str, float]:
+        return {"beta": float(self.beta.detach())}
+
     def density(self, sdf: Tensor) -> Tensor:
         return volsdf_density(sdf, self.beta)
 

@@ -21,7 +21,6 @@ Config (dict or OmegaConf) keys and defaults::
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from typing import Any
 
 from torch import nn
@@ -61,47 +60,34 @@ __all__ = [
 ]
 
 
-def _plain(cfg: Any) -> dict[str, Any]:
-    if cfg is None:
-        return {}
-    try:
-        from omegaconf import DictConfig, OmegaConf
+def _common(cfg: Any) -> tuple[Any, dict[str, Any]]:
+    """The keys every guidance shares (typed: :class:`~nerfart_plugin.schema.GuidanceCommon`) and the config."""
+    from nerfart_plugin.schema import GuidanceCommon, section, to_plain
 
-        if isinstance(cfg, DictConfig):
-            return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
-    except ImportError:  # pragma: no cover
-        pass
-    if isinstance(cfg, Mapping):
-        return {k: _plain(v) if isinstance(v, Mapping) else v for k, v in cfg.items()}
-    raise ConfigError(f"guidance config must be a mapping, got {type(cfg).__name__}")
+    c = to_plain(cfg)
+    return section(GuidanceCommon, c, prefix="guidance"), c
 
 
 def build_guidance(cfg: Any) -> Guidance:
     """Build the guidance encoder named ``cfg["name"]`` (see module docstring for keys)."""
-    c = _plain(cfg)
-    name = c.get("name", "clip")
-    cls = registry.get("guidance", name)  # ConfigError listing valid names
+    common, c = _common(cfg)
+    cls = registry.get("guidance", common.name)  # ConfigError listing valid names
     if cls is CLIPGuidance:
-        sub = dict(c.get("clip") or {})
-        return CLIPGuidance(
-            allow_random_weights=bool(c.get("allow_random_weights", False)),
-            allow_download=c.get("allow_download"),
-            **sub,
-        )
-    sub = dict(c.get(name) or {})
+        return CLIPGuidance(allow_random_weights=common.allow_random_weights, allow_download=common.allow_download,
+                            **dict(c.get("clip") or {}))
+    sub = dict(c.get(common.name) or {})
     try:
         return cls(**sub)
     except TypeError as exc:
-        raise ConfigError(f"guidance.{name} has invalid keys {sorted(sub)}: {exc}") from exc
+        raise ConfigError(f"guidance.{common.name} has invalid keys {sorted(sub)}: {exc}") from exc
 
 
 def build_perceptual(cfg: Any) -> nn.Module:
     """Perceptual feature extractor for Eq. 9: :class:`Perceptual` (VGG16) or the toy
     :class:`EdgePerceptual` (default for ``name: toy``). Both expose
     ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
-    c = _plain(cfg)
-    defaults = {"toy": "edges", "imagenet": "imagenet"}
-    kind = c.get("perceptual") or defaults.get(c.get("name", "clip"), "vgg")
+    common, c = _common(cfg)
+    kind = common.perceptual or {"toy": "edges", "imagenet": "imagenet"}.get(common.name, "vgg")
     if kind == "edges":
         return EdgePerceptual(**dict(c.get("edges") or {}))
     if kind == "imagenet":
@@ -116,10 +102,7 @@ def build_perceptual(cfg: Any) -> nn.Module:
         raise ConfigError(f"guidance.perceptual={kind!r}; use vgg, edges or imagenet")
     sub = dict(c.get("vgg") or {})
     try:
-        return Perceptual(
-            allow_random_weights=bool(c.get("allow_random_weights", False)),
-            allow_download=c.get("allow_download"),
-            **sub,
-        )
+        return Perceptual(allow_random_weights=common.allow_random_weights, allow_download=common.allow_download,
+                          **sub)
     except TypeError as exc:
         raise ConfigError(f"guidance.vgg has invalid keys {sorted(sub)}: {exc}") from exc

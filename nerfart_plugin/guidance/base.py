@@ -110,9 +110,6 @@ class Guidance(nn.Module, abc.ABC):
         """Guidance is frozen: it stays in eval mode even inside a module put in train mode."""
         return super().train(False)
 
-    def clear_text_cache(self) -> None:
-        self._text_cache.clear()
-
     def forward(self, img: Tensor) -> Tensor:  # nn.Module entry point
         return self.encode_image(img)
 

@@ -162,12 +162,11 @@ class CLIPGuidance(Guidance):
         precision: image-encoder arithmetic: "fp32", "bf16" (autocast), "fp16"
             (autocast; CUDA only) or "auto" (default): fp16 on CUDA, as OpenAI's
             CLIP runs there, bf16 on CPUs with native bf16 (AVX512-BF16/AMX),
-            else fp32. Weights and text embeddings stay fp32. Measured on this
-            machine's CPU (ViT-B/32): bf16 fwd+bwd 0.18-0.20 s per image vs 0.37 s
-            in fp32, embeddings within cosine 0.99995 and image gradients within
-            cosine 0.9998 of fp32. On CPU bf16 images are encoded one at a time:
-            with batches > 1, torch 2.14's CPU bf16 ``bmm`` path (frozen weights)
-            is ~25x slower.
+            else fp32. Weights and text embeddings stay fp32; embeddings stay within
+            cosine 0.99995 and image gradients within cosine 0.9998 of fp32 (speed:
+            ``BENCHMARKS.md``, stylization section). On CPU bf16 images are encoded one
+            at a time: with batches > 1, torch 2.14's CPU bf16 ``bmm`` path (frozen
+            weights) is far slower.
         device: where to put the model (default CPU; ``.to()`` works as usual).
     """
 

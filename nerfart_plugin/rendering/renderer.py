@@ -8,8 +8,6 @@ midpoints, converts to opacities with ``field.alpha`` and composites:
 
 from __future__ import annotations
 
-import functools
-import inspect
 from typing import Any, Optional, Sequence
 
 import torch
@@ -25,17 +23,12 @@ from nerfart_plugin.rendering.volume import weights_from_alpha
 __all__ = ["VolumeRenderer"]
 
 
-@functools.lru_cache(maxsize=None)
-def _takes_with_normal(field_type: type) -> bool:
-    """Whether ``field_type.forward`` accepts ``with_normal`` (checked once per class)."""
-    return "with_normal" in inspect.signature(field_type.forward).parameters
-
-
 class VolumeRenderer(nn.Module):
     """Render ray batches through a ``Field``.
 
     Args:
-        field: any backbone (only ``forward`` and ``alpha`` are used).
+        field: any :class:`~nerfart_plugin.fields.base.Field` (only ``query``, ``alpha``, ``regularizers``
+            and ``bound`` are used; the occupancy grid uses ``cell_occupancy``).
         num_samples: K sections per ray.
         background: optional direction-conditioned model ``c_bg(d)`` (e.g.
             ``EnvironmentMap``) composited with the remaining transmittance.
@@ -81,6 +74,21 @@ class VolumeRenderer(nn.Module):
             self.register_buffer("background_color", torch.tensor(list(background_color), dtype=torch.float32), persistent=False)
 
     # ------------------------------------------------------------------------------------------
+    @property
+    def occupied_fraction(self) -> Optional[float]:
+        """Share of occupied cells of the occupancy grid (None without a grid)."""
+        return self.occupancy.occupied_fraction if self.occupancy is not None else None
+
+    @torch.no_grad()
+    def update_occupancy(self, step: int, force: bool = False) -> bool:
+        """Refresh the occupancy grid from the field (see :meth:`OccupancyGrid.update`); False without a grid."""
+        return self.occupancy.update(self.field, step, force=force) if self.occupancy is not None else False
+
+    def widen_occupancy_band(self, cells: float) -> None:
+        """Sample at least ``cells`` occupancy cells around an SDF surface (no-op without a grid)."""
+        if self.occupancy is not None:
+            self.occupancy.sdf_band = max(self.occupancy.sdf_band, float(cells) * self.occupancy.cell_size)
+
     def ray_bounds(self, rays_o: Tensor, rays_d: Tensor, near: Tensor, far: Tensor) -> tuple[Tensor, Tensor]:
         """[near, far] per ray, clipped to the field's box if ``clip_to_bound`` (near == far if it misses)."""
         near = near.float().reshape(-1)
@@ -129,7 +137,8 @@ class VolumeRenderer(nn.Module):
         [R,K,2] (pass back to reproduce the same samples); SDF fields add
         ``normal`` [R,3] (``sum w n``; with ``with_normals=False`` a no-grad
         render may omit it and skip the gradient taps) and, when grad is enabled,
-        the field's regularizers (``eikonal``: mean over samples of ``(|grad sdf| - 1)^2``).
+        ``regularizers``: the field's regularizer terms (a dict of 0-dim tensors, e.g. ``eikonal``: the
+        mean over samples of ``(|grad sdf| - 1)^2``, ``grid_tv``), see ``Field.regularizers``.
         """
         for key in ("rays_o", "rays_d", "near", "far"):
             if key not in batch:
@@ -173,15 +182,8 @@ class VolumeRenderer(nn.Module):
             normal = out["normal"].reshape(R, K, 3).float()
             result["normal"] = (weights[..., None] * normal).sum(-2)
         if torch.is_grad_enabled():
-            result.update(self.field.regularizers(reg_out))
+            result["regularizers"] = self.field.regularizers(reg_out)
         return result
-
-    def _field_call(self, x: Tensor, d: Tensor, with_normals: bool) -> dict[str, Tensor]:
-        """``field(x, d)``; ``with_normal=False`` is passed only to fields whose ``forward`` takes it
-        (a custom field with the plain ``forward(x, d)`` contract keeps working, normals and all)."""
-        if not with_normals and _takes_with_normal(type(self.field)):
-            return self.field(x, d, with_normal=False)
-        return self.field(x, d)
 
     def _query_field(self, x: Tensor, d: Tensor, valid: Tensor,
                      with_normals: bool = True) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
@@ -194,12 +196,12 @@ class VolumeRenderer(nn.Module):
         """
         n = x.shape[0]
         if not self.compact or bool(valid.all()):
-            out = self._field_call(x, d, with_normals)
+            out = self.field.query(x, d, with_normal=with_normals)
             return out, out
         idx = valid.nonzero()[:, 0]
         if idx.numel() == 0:  # keep shapes/graph alive: evaluate one (transparent) sample
             idx = torch.zeros(1, dtype=torch.long, device=x.device)
-        sub = self._field_call(x.index_select(0, idx), d.index_select(0, idx), with_normals)
+        sub = self.field.query(x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normals)
         full = {}
         for k, v in sub.items():
             if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == idx.shape[0]:

@@ -28,7 +28,6 @@ __all__ = [
     "stratified_edges",
     "edges_to_intervals",
     "stratified_samples",
-    "sample_pdf",
     "occupancy_samples",
     "ray_aabb",
 ]
@@ -88,38 +87,6 @@ def _invert_cdf(bins: Tensor, cdf: Tensor, u: Tensor) -> Tensor:
     # Empty bins (denom == 0) contribute nothing; any t inside is fine, take the lower edge.
     frac = torch.where(denom > 1e-12, (u - cdf_lo) / denom.clamp_min(1e-12), torch.zeros_like(u))
     return bin_lo + frac.clamp(0.0, 1.0) * (bin_hi - bin_lo)
-
-
-def sample_pdf(
-    bins: Tensor,
-    weights: Tensor,
-    num_samples: int,
-    perturb: bool = False,
-    generator: Optional[torch.Generator] = None,
-    eps: float = 1e-5,
-) -> Tensor:
-    """Inverse-CDF sampling of a piecewise-constant pdf (NeRF hierarchical sampling).
-
-    Args:
-        bins: [R,B+1] sorted bin edges.
-        weights: [R,B] non-negative bin weights (need not be normalized);
-            ``eps`` is added to every weight so an all-zero row falls back to
-            uniform sampling instead of dividing by zero. Detached.
-        num_samples: N.
-        perturb: stratified random ``u`` (one per stratum) instead of the
-            deterministic stratum centres.
-    Returns:
-        t [R,N] sorted, within [bins[:,0], bins[:,-1]]; no gradient.
-    """
-    bins = bins.detach().float()
-    weights = weights.detach().float().clamp_min(0.0) + eps
-    pdf = weights / weights.sum(-1, keepdim=True)
-    cdf = torch.cat([torch.zeros_like(pdf[..., :1]), torch.cumsum(pdf, -1)], -1).clamp(max=1.0)
-    cdf[..., -1] = 1.0
-    R, N = bins.shape[0], int(num_samples)
-    offset = uniform_rand((R, N), bins.device, generator) if perturb else torch.full((R, N), 0.5, device=bins.device)
-    u = (torch.arange(N, device=bins.device, dtype=torch.float32) + offset) / N
-    return _invert_cdf(bins, cdf, u)
 
 
 def ray_aabb(rays_o: Tensor, rays_d: Tensor, bound: float) -> tuple[Tensor, Tensor]:

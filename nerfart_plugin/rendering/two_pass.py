@@ -29,7 +29,8 @@ from nerfart_plugin.rendering.renderer import VolumeRenderer
 RayLoss = Callable[[dict[str, Tensor], dict[str, Any]], Tensor]
 
 
-def _slice(batch: dict[str, Any], idx: slice, n: int) -> dict[str, Any]:
+def slice_rays(batch: dict[str, Any], idx: slice, n: int) -> dict[str, Any]:
+    """Rows ``idx`` of every per-ray tensor (first dim ``n``) of a ray batch; other entries as they are."""
     return {k: (v[idx] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v) for k, v in batch.items()}
 
 
@@ -42,7 +43,7 @@ def render_fixed_samples(renderer: VolumeRenderer, batch: dict[str, Any], chunk:
     keys = ("rgb", "depth", "opacity", "t_samples")
     parts: dict[str, list[Tensor]] = {k: [] for k in keys}
     for s in range(0, n, chunk):
-        out = renderer(_slice(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator,
+        out = renderer(slice_rays(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator,
                        with_normals=False)  # colour only: SDF fields skip the gradient taps
         for k in keys:
             parts[k].append(out[k])
@@ -73,7 +74,7 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
     totals = {k: 0.0 for k in ray_losses}
     for s in range(0, n, patch_rays):
         sl = slice(s, s + patch_rays)
-        sub = _slice(batch, sl, n)
+        sub = slice_rays(batch, sl, n)
         out = renderer(sub, perturb=False, t_samples=t_samples[sl])
         share = out["rgb"].shape[0] / n
         surrogate = (out["rgb"] * rgb_grad[sl]).sum()

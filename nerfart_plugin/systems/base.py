@@ -10,44 +10,46 @@ import torch
 
 from nerfart_plugin.fields import OccupancyGrid, build_background, build_field
 from nerfart_plugin.rendering import VolumeRenderer
+from nerfart_plugin.schema import RenderConfig, section
 from nerfart_plugin.systems.scene_setup import SceneSetup
 
 log = logging.getLogger(__name__)
 
 
-def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: dict, setup: SceneSetup) -> VolumeRenderer:
-    """Field (backbone x encoding) + optional background model + occupancy grid, wrapped in the renderer."""
+def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderConfig | dict,
+                   setup: SceneSetup) -> VolumeRenderer:
+    """Field (backbone x encoding) + optional background model + occupancy grid, wrapped in the renderer.
+
+    ``render_cfg``: the ``render`` section (a :class:`RenderConfig`, or a dict: what it leaves out
+    takes the schema's defaults); ``setup`` decides the box, background, grid size and samples.
+    """
+    rc = section(RenderConfig, render_cfg)
     field = build_field(dict(backbone_cfg), dict(encoding_cfg), bound=setup.bound)
     background = build_background({"name": "envmap"}) if setup.background_model else None
     occupancy: Optional[OccupancyGrid] = None
     if setup.occupancy_resolution > 0:
-        occ = dict(render_cfg.get("occupancy") or {})
-        occupancy = OccupancyGrid(
-            resolution=setup.occupancy_resolution,
-            bound=setup.bound,
-            threshold=float(occ.get("threshold", 0.01)),
-            update_every=int(occ.get("update_every", 16)),
-            warmup_steps=int(occ.get("warmup_steps", 64)),
-        )
+        occ = rc.occupancy
+        occupancy = OccupancyGrid(resolution=setup.occupancy_resolution, bound=setup.bound, threshold=occ.threshold,
+                                  update_every=occ.update_every, warmup_steps=occ.warmup_steps)
     return VolumeRenderer(field, num_samples=setup.num_samples, background=background, occupancy=occupancy,
                           background_color=setup.background_color)
 
 
 def param_groups(renderer: VolumeRenderer, lr_grid: float, lr_mlp: float, geometry: bool = True) -> list[dict]:
-    """Adam groups: encoding parameters (grids) at ``lr_grid``, the rest (MLPs, β, inv_s, background) at
-    ``lr_mlp`` times the encoding's ``mlp_lr_scale``.
+    """Adam groups: the field's grid parameters (``Field.grid_parameters``, the encoding) at ``lr_grid``,
+    the rest (MLPs, beta, inv_s, background) at ``lr_mlp`` times the field's ``mlp_lr_scale``.
 
     With ``geometry=False`` the field's geometry parameters are left out (frozen).
     """
     field = renderer.field
-    lr_mlp = lr_mlp * float(getattr(field.encoding, "mlp_lr_scale", 1.0))
+    lr_mlp = lr_mlp * field.mlp_lr_scale
     frozen = set() if geometry else {id(p) for p in field.geometry_parameters()}
-    enc = {id(p) for p in field.encoding.parameters()}
+    grid = {id(p) for p in field.grid_parameters()}
     grid_params, mlp_params = [], []
     for p in renderer.parameters():
         if not p.requires_grad or id(p) in frozen:
             continue
-        (grid_params if id(p) in enc else mlp_params).append(p)
+        (grid_params if id(p) in grid else mlp_params).append(p)
     groups = []
     if grid_params:
         groups.append({"params": grid_params, "lr": lr_grid, "name": "grid"})
@@ -83,19 +85,25 @@ class RenderSystem(L.LightningModule):
 
     Its checkpoints record the model they belong to (``checkpoint["nerfart"]``, see
     :func:`nerfart_plugin.checkpoints.checkpoint_meta`), so that a checkpoint that does not
-    fit a run is named with what differs.
+    fit a run is named with what differs. What a stage needs from a system after training is
+    public here (:attr:`model_meta`, :attr:`occupied_fraction`, :meth:`render_view`), so
+    nothing outside reaches into the renderer.
     """
 
     renderer: VolumeRenderer
     #: stage name recorded in checkpoints
     stage: str = "render"
-    model_meta: dict[str, Any] = {}
 
-    def remember_model(self, backbone_cfg: dict, encoding_cfg: dict, setup: SceneSetup) -> None:
-        """Record the model settings for :meth:`on_save_checkpoint` (plain data)."""
+    def __init__(self, backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderConfig | dict,
+                 setup: SceneSetup) -> None:
         from nerfart_plugin.checkpoints import checkpoint_meta
 
-        self.model_meta = checkpoint_meta(self.stage, backbone_cfg, encoding_cfg, setup)
+        super().__init__()
+        self.setup_info = setup if isinstance(setup, SceneSetup) else SceneSetup(**setup)
+        self.render_cfg = section(RenderConfig, render_cfg)
+        self.renderer = build_renderer(backbone_cfg, encoding_cfg, self.render_cfg, self.setup_info)
+        #: the model settings recorded in checkpoints (plain data)
+        self.model_meta: dict[str, Any] = checkpoint_meta(self.stage, backbone_cfg, encoding_cfg, self.setup_info)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         from nerfart_plugin.checkpoints import META_KEY
@@ -104,4 +112,20 @@ class RenderSystem(L.LightningModule):
 
     @property
     def field(self):
+        """The field being trained (``renderer.field``)."""
         return self.renderer.field
+
+    @property
+    def occupied_fraction(self) -> Optional[float]:
+        """Share of occupied cells of the occupancy grid (None without one)."""
+        return self.renderer.occupied_fraction
+
+    @torch.no_grad()
+    def render_view(self, batch: dict[str, Any], chunk: int, with_normals: bool = True,
+                    renderer: Optional[VolumeRenderer] = None) -> dict[str, torch.Tensor]:
+        """Render a full view batch (ints H, W) without grad -> images [H,W,C] (``with_normals=False``:
+        colour, depth and opacity only, cheaper for SDF fields); ``renderer``: another renderer (the source)."""
+        H, W = int(batch["H"]), int(batch["W"])
+        r = renderer if renderer is not None else self.renderer
+        out = r.render_chunked(to_device(batch, self.device), chunk=chunk, with_normals=with_normals)
+        return {k: v.reshape(H, W, -1) for k, v in out.items() if torch.is_tensor(v)}

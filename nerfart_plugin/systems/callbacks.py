@@ -44,7 +44,7 @@ class AtomicCheckpoint(L.Callback):
     def __init__(self, dirpath: str | Path, every_n_steps: int) -> None:
         self.dirpath = Path(dirpath)
         self.every_n_steps = max(1, int(every_n_steps))
-        self._last_saved = -1
+        self.last_saved = -1
 
     def save(self, trainer: L.Trainer) -> Path:
         path = self.dirpath / LAST
@@ -57,17 +57,17 @@ class AtomicCheckpoint(L.Callback):
             if trainer.is_global_zero:
                 os.replace(tmp, path)
             trainer.strategy.barrier("atomic_checkpoint")
-        self._last_saved = trainer.global_step
+        self.last_saved = trainer.global_step
         log.debug("checkpoint at step %d -> %s", trainer.global_step, path)
         return path
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
         step = trainer.global_step
-        if step > 0 and step % self.every_n_steps == 0 and step != self._last_saved:
+        if step > 0 and step % self.every_n_steps == 0 and step != self.last_saved:
             self.save(trainer)
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
-        if trainer.global_step != self._last_saved and not trainer.interrupted:
+        if trainer.global_step != self.last_saved and not trainer.interrupted:
             self.save(trainer)
 
 
@@ -102,7 +102,7 @@ class GracefulInterrupt(L.Callback):
         if trainer.world_size > 1:  # every rank stops at the same step
             requested = trainer.strategy.reduce_boolean_decision(requested, all=False)
         if requested and not trainer.should_stop:
-            if self.checkpoint._last_saved != trainer.global_step:
+            if self.checkpoint.last_saved != trainer.global_step:
                 self.checkpoint.save(trainer)
             self.stopped_at = trainer.global_step
             trainer.should_stop = True

@@ -11,7 +11,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Optional
 
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.schema import RenderConfig, section
 
 log = logging.getLogger(__name__)
 
@@ -46,11 +46,13 @@ class SceneSetup:
         return asdict(self)
 
 
-def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSetup:
-    """Pick extent/background/sampling for ``scene`` from its capture type and resolution."""
+def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: bool) -> SceneSetup:
+    """Pick extent/background/sampling for ``scene`` from its capture type and resolution
+    (``render_cfg``: the ``render`` section, typed or as a dict of its keys)."""
+    rc = section(RenderConfig, render_cfg)
     reasons: list[str] = []
     has_masks = scene.masks is not None
-    bg_opt = render_cfg.get("background_model", "auto")
+    bg_opt = rc.background_model
     if bg_opt == "auto":
         background_model = scene.capture == "unbounded" and not has_masks
         if background_model:
@@ -59,26 +61,24 @@ def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSe
             reasons.append("forward-facing capture: NDC space reaches infinity, no background model")
         else:
             reasons.append(f"{scene.capture} capture with masks: constant background colour, no background model")
-    elif isinstance(bg_opt, bool):
+    else:  # true | false (the schema allows nothing else)
         background_model = bg_opt
         reasons.append(f"background model {'on' if bg_opt else 'off'} by render.background_model")
-    else:
-        raise ConfigError(f"render.background_model must be auto, true or false, not {bg_opt!r}.")
 
-    background_color = render_cfg.get("background_color", [1.0, 1.0, 1.0])
+    background_color = rc.background_color
     if ndc or background_model:
         background_color = None
     if ndc:
         # NDC x, y of cameras away from the mean pose reach about +-1.45 (fern: 1.44) at t = 0 or 1;
         # a [-1,1] box would clip the image borders and cap the PSNR.
-        bound = float(render_cfg.get("ndc_bound", 1.5))
+        bound = rc.ndc_bound
         reasons.append(f"field box [-{bound:g},{bound:g}]^3 in NDC (off-centre cameras leave the unit NDC cube)")
     else:
         bound = 1.0
         reasons.append("field box [-1,1]^3: unit sphere of the normalized scene")
 
-    occ = dict(render_cfg.get("occupancy") or {})
-    enabled = occ.get("enabled", "auto")
+    occ = rc.occupancy
+    enabled = occ.enabled
     if enabled == "auto":
         # An NDC frustum is scene from the near plane to infinity: a forward-facing capture leaves
         # almost no empty cells to skip (fern: ~53% occupied), and the grid's refreshes then cost
@@ -87,9 +87,7 @@ def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSe
         if ndc:
             reasons.append("occupancy grid off: an NDC frustum is nearly all occupied, nothing to skip "
                            "(render.occupancy.enabled=true forces it)")
-    elif not isinstance(enabled, bool):
-        raise ConfigError(f"render.occupancy.enabled must be auto, true or false, not {enabled!r}.")
-    occ_res = int(occ.get("resolution", 64)) if enabled else 0
+    occ_res = occ.resolution if enabled else 0
     if occ_res:
         # No point resolving the grid finer than what a pixel footprint can resolve.
         pixel_limited = max(16, min(occ_res, 2 ** (max(scene.height, scene.width) - 1).bit_length() // 2))
@@ -98,9 +96,9 @@ def decide_setup(scene: Scene, render_cfg: dict[str, Any], ndc: bool) -> SceneSe
             occ_res = pixel_limited
         else:
             reasons.append(f"occupancy grid {occ_res}^3 for empty-space skipping")
-    elif occ.get("enabled", "auto") is False:
+    elif occ.enabled is False:
         reasons.append("occupancy grid off (render.occupancy.enabled=false): uniform stratified sampling")
-    num_samples = int(render_cfg.get("num_samples", 64))
+    num_samples = rc.num_samples
     setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,
                        has_masks, reasons)
     for r in reasons:

@@ -1,7 +1,8 @@
-"""Small analytic fields that follow the Field contract (for tests and benchmarks).
+"""Small analytic fields that follow the Field contract (test fixtures, also used by
+``benchmarks/mesh_extraction.py``).
 
 They implement only what mesh extraction / comparison needs:
-``geometry(x [N,3]) -> [N]``, ``mesh_level``, ``mesh_inside_is_below``, ``is_sdf``
+``geometry(x [N,3]) -> [N]``, ``mesh_level``, ``mesh_inside_is_below``, ``signed_distance()``
 and ``forward(x [N,3], d [N,3]) -> {"rgb" [N,3] in [0,1], "sdf"|"sigma" [N]}``.
 Coordinates are in world units (the field's AABB is [-bound, bound]^3).
 """
@@ -14,13 +15,15 @@ import numpy as np
 import torch
 from torch import nn
 
+from nerfart_plugin.fields.base import Field
+
 
 def _position_rgb(x: torch.Tensor) -> torch.Tensor:
     """A smooth, position-dependent colour in [0,1]: [N,3] -> [N,3]."""
     return (0.5 + 0.5 * torch.tanh(2.0 * x)).clamp(0.0, 1.0)
 
 
-class AnalyticSDF(nn.Module):
+class AnalyticSDF(Field):
     """Base of exact signed-distance stand-ins (negative inside, world units)."""
 
     is_sdf = True
@@ -38,6 +41,9 @@ class AnalyticSDF(nn.Module):
     def geometry(self, x: torch.Tensor) -> torch.Tensor:
         """Signed distance [N] at points x [N,3]."""
         return self.sdf(x)
+
+    def signed_distance(self):
+        return self.sdf
 
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
         """rgb [N,3] (position colour, slightly view-dependent) and sdf [N]."""
@@ -105,7 +111,7 @@ class UnionSDF(AnalyticSDF):
         return torch.stack([p.sdf(x) for p in self.parts], dim=0).amin(dim=0)
 
 
-class DensityFromSDF(nn.Module):
+class DensityFromSDF(Field):
     """Density-field stand-in: sigma = scale * sigmoid(-sdf / width) (high inside).
 
     ``mesh_level = scale / 2`` is exactly the zero level set of the wrapped SDF and

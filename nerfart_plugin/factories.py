@@ -1,0 +1,258 @@
+"""The public seam: build what a run is made of from its config.
+
+The stages (:mod:`nerfart_plugin.stages`), the benchmarks, the notebook and the tests all
+build through these, so none of them re-wires the pieces::
+
+    cfg = load_config(["stage=reconstruct", "backbone=nerf"])   # compose conf/ (Hydra)
+    scene = build_scene(cfg)                                     # validated config + loaded scene + setup
+    system = build_reconstruction_system(scene)                  # a LightningModule
+    train_steps(system, 100, scene.device)                       # nerfart_plugin.fit
+    run = load_run("outputs/reconstructions/<run>")              # a finished run's renderer and metrics
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import torch
+from omegaconf import DictConfig
+
+from nerfart_plugin.checkpoints import META_KEY, check_fits, checkpoint_meta, load_checkpoint, prefixed_state
+from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.errors import NerfArtError
+from nerfart_plugin.schema import RunConfig, parse_config
+from nerfart_plugin.systems.scene_setup import SceneSetup
+
+log = logging.getLogger("nerfart_plugin")
+
+SOURCE_FIX = ("Pass source_checkpoint= the final.ckpt of a reconstruction made with this backbone and encoding, or "
+              "leave it out to use (or make) the cached reconstruction of these settings.")
+
+
+def load_config(overrides: Sequence[str] = ()) -> DictConfig:
+    """``conf/config.yaml`` (on the schema's defaults) composed with Hydra ``overrides``, as the CLI does."""
+    from hydra import compose, initialize_config_dir
+
+    from nerfart_plugin.config_paths import config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return compose("config", overrides=list(overrides))
+
+
+def typed(cfg: Any) -> tuple[RunConfig, dict]:
+    """``(RunConfig, plain dict)`` of a config: a RunConfig as it is, anything else validated."""
+    if isinstance(cfg, RunConfig):
+        return cfg, cfg.model_dump(mode="json")
+    return parse_config(cfg)
+
+
+# ---------------------------------------------------------------------- the scene
+@dataclass
+class SceneContext:
+    """A run's validated config with its loaded scene: what every stage builds on.
+
+    Attributes:
+        cfg: the typed config (component sections are dicts).
+        plain: the same config as plain data (what run folders record in ``config.yaml``).
+        dm: the scene's datamodule (``train_rays``, ``view_batch``, ``val_dataloader``).
+        setup: the scene setup decided from the scene and ``cfg.render``.
+        device: the compute device; root: the output root.
+    """
+
+    cfg: RunConfig
+    plain: dict
+    dm: Any
+    setup: SceneSetup
+    device: torch.device
+    root: Path
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def scene(self) -> Scene:
+        return self.dm.load()
+
+    @property
+    def ndc(self) -> bool:
+        return self.dm.ndc
+
+    def views(self, ids: Sequence[int], resolution: int) -> list[dict[str, Any]]:
+        """Ray batches of views ``ids`` at ``resolution`` px on the long side (stylization, evaluation)."""
+        from nerfart_plugin.data.rays import views_at_resolution
+
+        return views_at_resolution(self.scene, list(ids), int(resolution), self.ndc)
+
+    def with_config(self, cfg: Any) -> "SceneContext":
+        """The same loaded scene under another config of the same data (the setup decided again)."""
+        from nerfart_plugin.systems.scene_setup import decide_setup
+
+        run, plain = typed(cfg)
+        return replace(self, cfg=run, plain=plain, setup=decide_setup(self.scene, run.render, ndc=self.ndc))
+
+
+def build_scene(cfg: Any) -> SceneContext:
+    """Validate ``cfg`` (a DictConfig, dict or RunConfig), load its scene and decide the scene setup."""
+    from nerfart_plugin.data.datamodule import SceneDataModule
+    from nerfart_plugin.systems.scene_setup import decide_setup
+    from nerfart_plugin.utils.device import pick_device
+    from nerfart_plugin.utils.io import check_writable_dir
+
+    run, plain = typed(cfg)
+    root = check_writable_dir(run.output_root, "output_root")
+    dm = SceneDataModule({"background_color": run.render.background_color, **run.data,
+                          "cache_root": str(root / "cache")})  # loaders' caches (selfie frames + SfM)
+    scene = dm.load()
+    for note in scene.notes:
+        log.info("data: %s", note)
+    setup = decide_setup(scene, run.render, ndc=dm.ndc)
+    return SceneContext(run, plain, dm, setup, pick_device(run.device), root, list(scene.notes))
+
+
+# ---------------------------------------------------------------------- renderers and systems
+def build_renderer(cfg: RunConfig, setup: SceneSetup):
+    """The renderer (field + background + occupancy grid) of ``cfg``'s backbone / encoding / render settings."""
+    from nerfart_plugin.systems.base import build_renderer as _build
+
+    return _build(cfg.backbone, cfg.encoding, cfg.render, setup)
+
+
+def build_reconstruction_system(scene: SceneContext, out_dir: Optional[Path] = None, setup: Optional[SceneSetup] = None):
+    """The reconstruction LightningModule of ``scene.cfg`` on the scene's training rays."""
+    from nerfart_plugin.systems.reconstruction import ReconstructionSystem
+
+    scene.dm.setup("fit")
+    c = scene.cfg
+    return ReconstructionSystem(c.reconstruct, c.backbone, c.encoding, c.render, setup or scene.setup,
+                                train_rays=scene.dm.train_rays, seed=c.seed,
+                                out_dir=str(out_dir) if out_dir is not None else None)
+
+
+def load_renderer_state(ckpt_path: Path, scene: Optional[SceneContext] = None) -> dict[str, torch.Tensor]:
+    """The renderer tensors of a reconstruction / stylization checkpoint, read without running code; with
+    ``scene``, checked to fit its backbone / encoding / setup (the error names the file and what differs)."""
+    ckpt = load_checkpoint(ckpt_path, fix=SOURCE_FIX)
+    state = prefixed_state(ckpt, "renderer.")
+    if scene is not None:
+        c = scene.cfg
+        here = checkpoint_meta("reconstruct", c.backbone, c.encoding, scene.setup)
+        check_fits(build_renderer(c, scene.setup), state, ckpt_path, ckpt.get(META_KEY), here, SOURCE_FIX)
+    return state
+
+
+@dataclass
+class Style:
+    """The guidance of a stylization and the prompts it is given.
+
+    Attributes:
+        guidance / perceptual: the frozen encoders (CLIP + VGG, toy, imagenet).
+        real: both are real pretrained models (else the outputs are stamped).
+        stamp: suffix of every output file ("" for real CLIP; ``_UNSTYLED-toy``, ``_VERIFY-imagenet``).
+        raw_prompt / prompt: the prompt as typed / after augmentation; source_prompt: Eq. 4's t_src.
+    """
+
+    guidance: Any
+    perceptual: Any
+    real: bool
+    stamp: str
+    raw_prompt: str
+    prompt: str
+    source_prompt: str
+
+
+def build_style(cfg: Any, guidance: Any = None, perceptual: Any = None) -> Style:
+    """Build the guidance of ``cfg`` (first, so missing weights fail before any training) and resolve the
+    prompts: augmentation (``prompt_augment``), ``source_prompt=auto`` from ``data.subject``."""
+    from nerfart_plugin.guidance import (augment_prompt, build_guidance, build_perceptual, default_source_prompt,
+                                         validate_prompt)
+
+    c, _ = typed(cfg)
+    g = c.guidance
+    guidance = guidance if guidance is not None else build_guidance(g)
+    perceptual = perceptual if perceptual is not None else build_perceptual(g)
+    real = bool(guidance.is_real and getattr(perceptual, "is_real", True))
+    stamp = guidance.output_stamp() or ("" if real else f"_UNSTYLED-{g['name']}")
+    if not real:
+        log.warning("guidance is not a real pretrained CLIP (%s): every output is stamped %r", g["name"], stamp)
+    raw = validate_prompt(c.prompt)
+    prompt = augment_prompt(raw) if c.prompt_augment else raw
+    if prompt != raw:
+        log.info("prompt augmented: %r -> %r", raw, prompt)
+    src = c.source_prompt if c.source_prompt != "auto" else default_source_prompt(c.data.get("subject") or "object")
+    return Style(guidance, perceptual, real, stamp, raw, prompt, src)
+
+
+def stylize_settings(scene: SceneContext):
+    """The ``stylize`` section with ``resolution: auto`` (the loaded images' long side: the data resolution
+    policy, 256x256 head, 270x480 selfies) and ``epochs`` (steps = epochs x training views) resolved."""
+    sc = scene.cfg.stylize
+    update: dict[str, Any] = {}
+    if sc.resolution == "auto":
+        update["resolution"] = max(scene.scene.height, scene.scene.width)
+    if sc.epochs:
+        update["steps"] = int(sc.epochs) * len(scene.scene.train_ids)
+    return sc.model_copy(update=update)
+
+
+def build_stylization_system(scene: SceneContext, source_state: dict, style: Optional[Style] = None,
+                             out_dir: Optional[Path] = None):
+    """The stylization LightningModule of ``scene.cfg`` starting from ``source_state`` (the reconstruction's
+    renderer tensors, :func:`load_renderer_state`); ``style``: from :func:`build_style` by default."""
+    from nerfart_plugin.guidance import resolve_negatives
+    from nerfart_plugin.systems.stylization import StylizationSystem
+
+    c, sc = scene.cfg, stylize_settings(scene)
+    style = style or build_style(c)
+    views = scene.views(scene.scene.train_ids, sc.resolution)
+    return StylizationSystem(sc, c.experiment, c.backbone, c.encoding, c.render, scene.setup, source_state, views,
+                             style.guidance, style.perceptual, style.prompt, style.source_prompt,
+                             resolve_negatives(sc.negatives, style.guidance, style.prompt), seed=c.seed,
+                             out_dir=str(out_dir) if out_dir is not None else None, stamp=style.stamp,
+                             raw_prompt=style.raw_prompt)
+
+
+# ---------------------------------------------------------------------- finished runs
+@dataclass
+class LoadedRun:
+    """A run folder read back: its config, metrics and renderer (on the CPU, eval mode).
+
+    Attributes:
+        path: the run folder; checkpoint: the file the renderer was read from.
+        cfg: its typed config; metrics: its ``metrics.json`` ({} if none).
+        setup: the scene setup it was trained with (from the checkpoint's record).
+        renderer: the trained renderer.
+    """
+
+    path: Path
+    checkpoint: Path
+    cfg: RunConfig
+    metrics: dict
+    setup: SceneSetup
+    renderer: Any
+
+
+def load_run(run_dir: Path | str, checkpoint: str = "final.ckpt") -> LoadedRun:
+    """Read a reconstruction or stylization folder: ``config.yaml``, ``metrics.json`` and the renderer of
+    ``checkpoint`` (``last.ckpt`` for an unfinished run), rebuilt from the checkpoint's model record."""
+    from omegaconf import OmegaConf
+
+    path = Path(run_dir)
+    ckpt_path = path / checkpoint
+    if not (path / "config.yaml").is_file() or not ckpt_path.is_file():
+        raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point load_run at "
+                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
+    cfg, _ = typed(OmegaConf.load(path / "config.yaml"))
+    ckpt = load_checkpoint(ckpt_path, fix=SOURCE_FIX)
+    meta = ckpt.get(META_KEY)
+    if not isinstance(meta, dict) or "setup" not in meta:
+        raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "
+                           "with build_scene(cfg) and load_renderer_state(checkpoint, scene).")
+    setup = SceneSetup(**meta["setup"])
+    renderer = build_renderer(cfg, setup)
+    renderer.load_state_dict(prefixed_state(ckpt, "renderer."))
+    metrics_path = path / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    return LoadedRun(path, ckpt_path, cfg, metrics, setup, renderer.eval())
+

@@ -1,0 +1,96 @@
+"""One declaration per loss term: the tables, lambda_* weights (0 skips a term), and field regularizers
+consumed generically, so encoding.tv_weight reaches both stages' losses."""
+
+from __future__ import annotations
+
+import torch
+
+from nerfart_plugin.data.rays import camera_batch
+from nerfart_plugin.guidance import ToyGuidance
+from nerfart_plugin.guidance.vgg import EdgePerceptual
+from nerfart_plugin.systems.base import build_renderer
+from nerfart_plugin.systems.reconstruction import RECONSTRUCTION_LOSSES, ReconstructionSystem
+from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.systems.stylization import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, StylizationSystem
+
+BACKBONE = {"name": "volsdf", "hidden_dim": 16, "n_layers": 1, "feature_dim": 8, "color_hidden_dim": 16,
+            "color_layers": 1}
+RENDER = {"num_samples": 8, "occupancy": {"resolution": 8}}
+
+
+def _setup(masks: bool = True) -> SceneSetup:
+    return SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, 8, 8, masks)
+
+
+def _rays(n: int = 64) -> dict:
+    g = torch.Generator().manual_seed(0)
+    o = torch.tensor([0.0, 0.0, -2.5]).expand(n, 3).contiguous()
+    d = torch.nn.functional.normalize(torch.tensor([0.0, 0.0, 1.0]) + 0.2 * torch.randn(n, 3, generator=g), dim=-1)
+    return {"rays_o": o, "rays_d": d, "near": torch.full((n,), 1.0), "far": torch.full((n,), 4.0),
+            "rgb": torch.rand(n, 3, generator=g), "mask": (torch.rand(n, generator=g) > 0.5).float()}
+
+
+def _recon(tv_weight: float, **cfg) -> ReconstructionSystem:
+    enc = {"name": "grid", "resolution": 8, "n_components": 2, "out_features": 8, "tv_weight": tv_weight}
+    return ReconstructionSystem({"batch_rays": 32, **cfg}, BACKBONE, enc, RENDER, _setup(), train_rays=_rays())
+
+
+def test_every_term_is_one_row_with_its_lambda():
+    from nerfart_plugin.schema import ExperimentConfig, ReconstructConfig
+
+    for table, section in ((RECONSTRUCTION_LOSSES, ReconstructConfig),
+                           (STYLIZATION_IMAGE_LOSSES + STYLIZATION_RAY_LOSSES, ExperimentConfig)):
+        names = [t.name for t in table]
+        assert len(names) == len(set(names))
+        assert all(t.lambda_key in section.model_fields and t.doc for t in table)
+
+
+def test_tv_weight_reaches_the_reconstruction_loss():
+    torch.manual_seed(0)
+    system = _recon(tv_weight=0.5)
+    assert system.field.regularizer_names == ("eikonal", "grid_tv")
+    assert system.reg_lambdas == {"eikonal": 0.1, "grid_tv": 1.0}  # lambda_eikonal; the encoding weighs grid_tv
+    batch = system.sample_batch(0)
+    out = system.renderer(batch, perturb=True)
+    terms, weights = system.losses(out, batch)
+    assert set(terms) == {"rgb", "mask", "eikonal", "grid_tv"}
+    # the planes get the TV gradient: the term is part of the loss, not just computed
+    tv = terms["grid_tv"]
+    planes = list(system.field.encoding.planes.parameters())
+    assert torch.autograd.grad(weights["grid_tv"] * tv, planes, retain_graph=True)[0].abs().sum() > 0
+    assert float(tv.detach()) == float(system.field.encoding.regularizers()["grid_tv"].detach())
+    off = _recon(tv_weight=0.0)
+    terms, _ = off.losses(off.renderer(batch, perturb=True), batch)
+    assert "grid_tv" not in terms and off.field.regularizer_names == ("eikonal",)
+
+
+def test_lambda_zero_and_missing_masks_skip_terms():
+    system = _recon(tv_weight=0.0, lambda_eikonal=0.0, lambda_mask=0.0)
+    batch = system.sample_batch(0)
+    terms, _ = system.losses(system.renderer(batch, perturb=True), batch)
+    assert set(terms) == {"rgb"}
+    enc = {"name": "grid", "resolution": 8, "n_components": 2}
+    no_masks = ReconstructionSystem({}, BACKBONE, enc, RENDER, _setup(masks=False), train_rays=_rays())
+    assert no_masks.lambdas["mask"] == 0.0
+    nerf = ReconstructionSystem({}, {"name": "nerf", "hidden_dim": 16}, enc, RENDER, _setup(), train_rays=_rays())
+    assert nerf.reg_lambdas == {}  # a density field has no eikonal term
+
+
+def _stylization(cfg: dict, tv_weight: float = 0.5) -> StylizationSystem:
+    enc = {"name": "grid", "resolution": 8, "n_components": 2, "tv_weight": tv_weight}
+    torch.manual_seed(0)
+    src = build_renderer(BACKBONE, enc, RENDER, _setup())
+    views = [camera_batch(torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), torch.eye(4)[:3], 8, 8, 0.5, 3.5, False)]
+    return StylizationSystem({"steps": 2, **cfg}, {"lambda_global": 0.0, "lambda_local": 0.0}, BACKBONE, enc, RENDER,
+                             _setup(), src.state_dict(), views, ToyGuidance(), EdgePerceptual(), "red", "a photo",
+                             ["blue"])
+
+
+def test_tv_weight_reaches_the_stylization_ray_terms_unless_geometry_is_frozen():
+    s = _stylization({})
+    ray = s.ray_losses()
+    assert {k: w for k, (w, _) in ray.items()} == {"reg": 0.1, "silhouette": 0.0, "eikonal": 0.1, "grid_tv": 1.0}
+    frozen = _stylization({"freeze_geometry": True})
+    assert {k: w for k, (w, _) in frozen.ray_losses().items()} == {"reg": 0.1, "silhouette": 0.0, "eikonal": 0.0,
+                                                                   "grid_tv": 0.0}
+    assert _stylization({"local_patches": 0}).lambdas["local"] == 0.0
