@@ -35,15 +35,17 @@ OOM_HINT = ("out of memory. Lower one of: render.chunk (rays per no-grad chunk o
 
 
 def build_trainer(max_steps: int, device: torch.device, trainer_cfg: TrainerConfig | dict, callbacks: Sequence[Any] = (),
-                  run_dir: Optional[Path] = None, **kw: Any) -> L.Trainer:
+                  run_dir: Optional[Path] = None, logger_cfg: Any = None, **kw: Any) -> L.Trainer:
     """A Trainer for ``max_steps`` steps on ``device`` with the ``trainer`` section (precision,
     log_every_n_steps, strategy/devices/num_nodes for Lightning DDP).
 
-    ``run_dir``: CSV logs under ``<run_dir>/logs`` and a progress bar; None: no logger, no progress bar
-    (in-memory runs). ``kw`` goes to ``lightning.Trainer`` (validation settings).
+    ``run_dir``: the ``logger`` section's loggers there (:func:`nerfart_plugin.loggers.build_loggers`;
+    default TensorBoard under ``<run_dir>/tb`` + CSV under ``<run_dir>/logs``) and a progress bar;
+    None: no logger, no progress bar (in-memory runs). ``kw`` goes to ``lightning.Trainer``.
     """
     from lightning.pytorch.callbacks import TQDMProgressBar
-    from lightning.pytorch.loggers import CSVLogger
+
+    from nerfart_plugin.loggers import build_loggers
 
     tc = section(TrainerConfig, trainer_cfg)
     accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
@@ -54,7 +56,7 @@ def build_trainer(max_steps: int, device: torch.device, trainer_cfg: TrainerConf
     return L.Trainer(
         max_steps=int(max_steps), accelerator=accelerator, devices=devices, precision=tc.precision,
         strategy=tc.strategy, num_nodes=tc.num_nodes, log_every_n_steps=tc.log_every_n_steps,
-        logger=CSVLogger(str(run_dir), name="logs") if logged else False,
+        logger=build_loggers(_plain(logger_cfg), run_dir) if logged else False,
         callbacks=[*callbacks, TQDMProgressBar(refresh_rate=10)] if logged else list(callbacks),
         enable_progress_bar=logged, enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
         default_root_dir=str(run_dir) if logged else None, **kw,
@@ -77,9 +79,16 @@ class FitResult:
         return self.trainer.global_rank == 0
 
 
+def _plain(cfg: Any) -> Optional[dict]:
+    """A config section (pydantic model or mapping) as a dict (None stays None)."""
+    if cfg is None:
+        return None
+    return cfg.model_dump() if hasattr(cfg, "model_dump") else dict(cfg)
+
+
 def fit_stage(system: L.LightningModule, folder: RunFolder, *, steps: int, device: torch.device,
               trainer_cfg: TrainerConfig | dict, checkpoint_every: int, callbacks: Sequence[Any] = (),
-              val: Any = None, **trainer_kw: Any) -> FitResult:
+              val: Any = None, logger_cfg: Any = None, **trainer_kw: Any) -> FitResult:
     """Train ``system`` for ``steps`` steps in ``folder``, resuming from its ``last.ckpt`` if it fits.
 
     Raises:
@@ -91,7 +100,8 @@ def fit_stage(system: L.LightningModule, folder: RunFolder, *, steps: int, devic
 
     ckpt = AtomicCheckpoint(folder.path, checkpoint_every)
     stop = GracefulInterrupt(ckpt)
-    trainer = build_trainer(steps, device, trainer_cfg, [ckpt, stop, *callbacks], run_dir=folder.path, **trainer_kw)
+    trainer = build_trainer(steps, device, trainer_cfg, [ckpt, stop, *callbacks], run_dir=folder.path,
+                            logger_cfg=logger_cfg, **trainer_kw)
     resume = folder.resume_point(system)
     t0 = time.perf_counter()
     run_fit(trainer, system, val=val, ckpt_path=resume, stop=stop, last=folder.last)

@@ -48,7 +48,7 @@ from nerfart_plugin.errors import ConfigError
 
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
-    "TrainerConfig", "ExperimentConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "validate_config", "parse_config",
+    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "validate_config", "parse_config",
     "component_model", "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
 ]
 
@@ -193,6 +193,30 @@ class ExportConfig(Section):
     remove_floaters: bool = Setting(True, description="drop small disconnected components")
     formats: Annotated[list[MeshFormat], Field(min_length=1)] = Setting(
         ["ply"], description="mesh files to write", off="export.enabled=false turns mesh export off")
+    frame: Literal["world", "normalized"] = Setting(
+        "world", description="coordinates of the written meshes: world (the capture's own frame, the "
+        "normalization undone; NDC captures converted) or normalized (the training frame); the file says which")
+    texture: bool = Setting(True, description="also write <mesh>_textured.obj/.mtl/.png and .glb: a UV atlas "
+                            "(xatlas) with the field's colour baked into a texture, for Blender and co.")
+    texture_size: Int = Setting(1024, ge=64, le=8192, description="side (pixels) of the baked texture",
+                                off="export.texture=false writes no textured meshes")
+
+
+LoggerName = Literal["tensorboard", "csv", "wandb"]
+
+
+class LoggerConfig(Section):
+    """``logger`` (group ``conf/logger``): where the training curves and periodic renders go."""
+
+    name: LoggerName = Setting("tensorboard", description="tensorboard (events under <run>/tb: losses, PSNR, "
+                               "render pairs as images) | csv | wandb (needs the wandb package)",
+                               changes_results=False)
+    csv: bool = Setting(True, description="also keep <run>/logs/version_N/metrics.csv", changes_results=False)
+    project: str = Setting("nerfart_plugin", min_length=1, description="W&B project", changes_results=False)
+    entity: Optional[str] = Setting(None, description="W&B entity; null: the user's default",
+                                    changes_results=False)
+    mode: Literal["online", "offline", "disabled"] = Setting("online", description="W&B mode (WANDB_MODE wins)",
+                                                             changes_results=False)
 
 
 Precision = Literal["32-true", "32", 32, "16-mixed", "16", 16, "bf16-mixed", "bf16", "16-true", "bf16-true",
@@ -287,6 +311,7 @@ class RunConfig(Section):
     export: ExportConfig = Field(default_factory=ExportConfig)
     trainer: TrainerConfig = Field(default_factory=TrainerConfig)
     experiment: ExperimentConfig = Field(default_factory=ExperimentConfig)
+    logger: LoggerConfig = Field(default_factory=LoggerConfig)
     # component sections: checked against the component they name (see validate_components)
     data: dict[str, Any] = Field(default_factory=lambda: {"kind": "h3ds"})
     backbone: dict[str, Any] = Field(default_factory=lambda: {"name": "volsdf"})
@@ -297,7 +322,7 @@ class RunConfig(Section):
 #: section name -> model, for the sections with fixed keys
 SECTIONS: dict[str, type[Section]] = {
     "render": RenderConfig, "reconstruct": ReconstructConfig, "stylize": StylizeConfig, "export": ExportConfig,
-    "trainer": TrainerConfig, "experiment": ExperimentConfig,
+    "trainer": TrainerConfig, "experiment": ExperimentConfig, "logger": LoggerConfig,
 }
 
 

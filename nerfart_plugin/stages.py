@@ -66,6 +66,7 @@ class TrainingStage:
         if not fit.is_global_zero:  # DDP: evaluation and outputs on rank 0 only
             return StageResult(self.folder.final)
         metrics = self.outputs(system, fit)
+        write_cameras(self.scene, self.folder.path)
         atomic_write_json(self.folder.path / "metrics.json", metrics)
         save_final(fit, self.folder)
         return StageResult(self.folder.final, {"dir": str(self.folder.path), **self.summary(metrics)})
@@ -124,7 +125,8 @@ class ReconstructStage(TrainingStage):
                                   if rc.val_every > 0 else dict(limit_val_batches=0))  # val_every=0: no validation
         return fit_stage(system, self.folder, steps=rc.steps, device=self.scene.device, trainer_cfg=self.scene.cfg.trainer,
                          checkpoint_every=rc.checkpoint_every, callbacks=[FiniteGradientGuard()],
-                         val=self.scene.dm.val_dataloader() if rc.val_every > 0 else None, **val_kw)
+                         val=self.scene.dm.val_dataloader() if rc.val_every > 0 else None,
+                         logger_cfg=self.scene.cfg.logger, **val_kw)
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """Held-out metrics (all views), the scene setup and notes, and ``mesh/source``."""
@@ -179,7 +181,7 @@ class StylizeStage(TrainingStage):
     def fit(self, system: Any) -> FitResult:
         return fit_stage(system, self.folder, steps=self.settings.steps, device=self.scene.device,
                          trainer_cfg=self.scene.cfg.trainer, checkpoint_every=self.settings.checkpoint_every,
-                         limit_val_batches=0)
+                         logger_cfg=self.scene.cfg.logger, limit_val_batches=0)
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
@@ -281,7 +283,6 @@ class StylizeStage(TrainingStage):
 
     def compare_meshes(self, system: Any) -> dict[str, Any]:
         """``mesh/source``, ``mesh/stylized<stamp>``, ``mesh/displacement<stamp>.ply`` and the geometry change."""
-        from nerfart_plugin.export import export_mesh as write_mesh
         from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 
         stamp, mesh_dir = self.style.stamp, self.folder.path / "mesh"
@@ -291,8 +292,8 @@ class StylizeStage(TrainingStage):
             return {}
         sdf = system.source.field.signed_distance()
         m = compare_meshes(sty, src, n_samples=20_000, source_sdf=sdf)
-        write_mesh(displacement_mesh(sty, vertex_distances(sty, src, source_sdf=sdf)),
-                   mesh_dir / f"displacement{stamp}.ply")
+        write_in_frame(self.scene, displacement_mesh(sty, vertex_distances(sty, src, source_sdf=sdf)),
+                       mesh_dir / f"displacement{stamp}.ply")
         return {f"mesh_{k}": v for k, v in m.items()}
 
 
@@ -307,11 +308,12 @@ def _unstyled_warning(style: Style) -> Optional[str]:
 
 
 # ---------------------------------------------------------------------- export
-def export_mesh(scene: SceneContext, field: Any, stem: Path):
-    """The mesh of ``field`` (marching cubes, ``export.*``) written as ``stem.<fmt>`` for each format;
-    None (with a warning) when the field has no surface at the level."""
+def export_mesh(scene: SceneContext, field: Any, stem: Path, texture: bool = True):
+    """The mesh of ``field`` (marching cubes, ``export.*``) written as ``stem.<fmt>`` for each format in
+    ``export.frame`` (the file says which), plus ``stem_textured.obj/.mtl/.png/.glb`` when ``export.texture``;
+    returns the mesh in the field's frame (for comparisons), None (with a warning) when the field has no
+    surface at the level."""
     from nerfart_plugin.export import MeshExtractor
-    from nerfart_plugin.export import export_mesh as write_mesh
 
     ec = scene.cfg.export
     ex = MeshExtractor(resolution=ec.resolution, bound=float(field.bound), chunk=ec.chunk, level=ec.level,
@@ -322,8 +324,46 @@ def export_mesh(scene: SceneContext, field: Any, stem: Path):
         log.warning("no mesh for %s: %s", stem, exc)
         return None
     for fmt in ec.formats:
-        write_mesh(mesh, stem.with_suffix(f".{fmt}"))
+        write_in_frame(scene, mesh, stem.with_suffix(f".{fmt}"))
+    if texture and ec.texture:
+        from nerfart_plugin.export.texture import bake_texture, export_textured
+
+        try:
+            textured = bake_texture(mesh, field, size=ec.texture_size, chunk=ec.chunk)
+        except NerfArtError as exc:
+            log.warning("no textured mesh for %s: %s", stem, exc)
+        else:
+            export_textured(in_frame(scene, textured), stem.with_name(f"{stem.name}_textured"))
     return mesh
+
+
+def in_frame(scene: SceneContext, mesh: Any) -> Any:
+    """``mesh`` (field frame: normalized, or NDC for forward-facing captures) in ``export.frame``."""
+    from nerfart_plugin.export.frames import to_frame
+
+    s = scene.scene
+    ndc = None
+    if scene.ndc:
+        K = s.K[0].double()
+        ndc = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "W": float(s.width), "H": float(s.height),
+               "near_plane": 1.0}
+    return to_frame(mesh, scene.cfg.export.frame, s.normalization.double().numpy(), ndc)
+
+
+def write_in_frame(scene: SceneContext, mesh: Any, path: Path) -> Path:
+    """Write a field-frame mesh in ``export.frame``, saying so in the file (see :mod:`export.frames`)."""
+    from nerfart_plugin.export import export_mesh as write_mesh
+    from nerfart_plugin.export.frames import frame_metadata
+
+    meta = frame_metadata(scene.cfg.export.frame, scene.scene.normalization.double().numpy(), ndc=scene.ndc)
+    return write_mesh(in_frame(scene, mesh), path, meta=meta)
+
+
+def write_cameras(scene: SceneContext, folder: Path) -> None:
+    """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer."""
+    from nerfart_plugin.data.camera_path import viewer_cameras
+
+    atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame))
 
 
 class ExportStage:

@@ -27,6 +27,8 @@ TINY = [
     "stylize.video_frames=3",
     "stylize.render_every=0",
     "trainer.log_every_n_steps=1",
+    "export.texture=false",
+    "logger=csv",
 ]
 
 

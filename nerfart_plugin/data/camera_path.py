@@ -137,15 +137,29 @@ def front_camera(c2w: np.ndarray) -> int:
     return int(np.argmax(unit @ (mean / np.linalg.norm(mean))))
 
 
-def viewer_cameras(scene: "Scene") -> dict:
+def viewer_cameras(scene: "Scene", frame: str = "normalized") -> dict:
     """What a mesh viewer needs to open on the capture's own view, as plain data (JSON-ready):
-    every camera (``c2w`` [N,3,4] OpenCV, ``K``, image size, names) in the scene's normalized frame
-    (the frame of the exported meshes), the look-at ``centre``, the world ``up`` vector, the
-    ``front`` camera index (:func:`front_camera`) and the ``normalization`` T (x_norm = T x_orig)."""
+    every camera (``c2w`` [N,3,4] OpenCV, ``K``, image size, names) in ``frame`` (that of the exported
+    meshes: "normalized", as trained, or "world", the capture's own), the look-at ``centre``, the
+    ``up`` vector, the ``front`` camera index (:func:`front_camera`) and the ``normalization`` T
+    (x_norm = T x_world)."""
     c2w = scene.c2w.detach().cpu().double().numpy()[:, :3, :4]
+    if frame == "world":
+        c2w = similarity_c2w(np.linalg.inv(scene.normalization.detach().cpu().double().numpy()), c2w)
     up = -c2w[:, :3, 1].mean(0)
-    return {"frame": "normalized", "c2w": c2w.tolist(), "K": scene.K.detach().cpu().double().numpy().tolist(),
+    return {"frame": frame, "c2w": c2w.tolist(), "K": scene.K.detach().cpu().double().numpy().tolist(),
             "width": int(scene.width), "height": int(scene.height), "names": list(scene.image_names),
             "centre": look_at_centre(c2w).tolist(), "up": (up / max(np.linalg.norm(up), 1e-12)).tolist(),
             "front": front_camera(c2w), "capture": scene.capture,
             "normalization": scene.normalization.detach().cpu().double().numpy().tolist()}
+
+
+def similarity_c2w(S: np.ndarray, c2w: np.ndarray) -> np.ndarray:
+    """Cameras [N,3,4] moved by the similarity S [4,4] (x' = S x): centres mapped, rotations rotated
+    by S's rotation (its scale divided out, so the axes stay orthonormal)."""
+    scale = np.cbrt(abs(np.linalg.det(S[:3, :3])))
+    R = S[:3, :3] / scale
+    out = np.empty_like(c2w)
+    out[:, :3, :3] = R @ c2w[:, :3, :3]
+    out[:, :3, 3] = c2w[:, :3, 3] @ S[:3, :3].T + S[:3, 3]
+    return out

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 from typing import Any, Optional
 
+import numpy as np
 import torch
 
 from nerfart_plugin.evaluation import view_metrics
@@ -119,19 +120,24 @@ class ReconstructionSystem(RenderSystem):
         for k, v in metrics.items():
             self.log(f"val/{k}", v, prog_bar=(k == "psnr"), batch_size=1)
         if self.out_dir is not None and batch_idx == 0:
-            save_val_grid(self.out_dir / "val" / f"step_{self.global_step:06d}.png", img,
-                          batch["rgb"].reshape(img["rgb"].shape))
+            from nerfart_plugin.loggers import log_images
+
+            grid = save_val_grid(self.out_dir / "val" / f"step_{self.global_step:06d}.png", img,
+                                 batch["rgb"].reshape(img["rgb"].shape))
+            log_images(self.loggers, "val/photo|render|depth|normal", [grid], self.global_step)
 
     def on_validation_epoch_end(self) -> None:
         self.val_metrics = {k.split("/", 1)[1]: float(v) for k, v in self.trainer.callback_metrics.items()
                             if k.startswith("val/")}
 
 
-def save_val_grid(path: Path, img: dict[str, torch.Tensor], target: torch.Tensor) -> None:
-    """Photo | render | depth | normal (if any), side by side."""
-    from nerfart_plugin.export.video import save_image_grid, to_uint8
+def save_val_grid(path: Path, img: dict[str, torch.Tensor], target: torch.Tensor) -> np.ndarray:
+    """Photo | render | depth | normal (if any), side by side; returns the grid (uint8 [H,W,3])."""
+    from nerfart_plugin.export.video import image_grid, save_image, to_uint8
 
     tiles = [to_uint8(target), to_uint8(img["rgb"]), to_uint8(img["depth"], normalize=True)]
     if "normal" in img:
         tiles.append(to_uint8(img["normal"] * 0.5 + 0.5))
-    save_image_grid(tiles, path)
+    grid = image_grid(tiles)
+    save_image(grid, path)
+    return grid

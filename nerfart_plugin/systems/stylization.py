@@ -323,10 +323,14 @@ class StylizationSystem(RenderSystem):
         every = self.cfg.render_every
         if self.out_dir is None or every <= 0 or not (step % every == 0 or step + 1 == self.total_steps):
             return
-        from nerfart_plugin.export.video import save_image_grid, to_uint8
+        from nerfart_plugin.export.video import image_grid, save_image, to_uint8
+
+        from nerfart_plugin.loggers import log_images
 
         pair = [to_uint8(src["img"][0].permute(1, 2, 0)), to_uint8(img.detach()[0].permute(1, 2, 0))]
-        save_image_grid(pair, self.out_dir / "renders" / f"step_{step:05d}{self.stamp}.png")
+        grid = image_grid(pair)
+        save_image(grid, self.out_dir / "renders" / f"step_{step:05d}{self.stamp}.png")
+        log_images(self.loggers, "renders/source|stylized", [grid], step)
 
     def _log_step(self, terms: dict[str, Tensor], ray_terms: dict[str, float], total: float, t: tuple) -> None:
         for k, v in terms.items():
