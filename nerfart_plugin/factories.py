@@ -79,6 +79,13 @@ class SceneContext:
     def ndc(self) -> bool:
         return self.dm.ndc
 
+    @property
+    def cameras(self):
+        """The capture's cameras (:class:`~nerfart_plugin.data.camera_path.CaptureCameras`)."""
+        from nerfart_plugin.data.camera_path import CaptureCameras
+
+        return CaptureCameras.from_scene(self.scene, self.ndc)
+
     def views(self, ids: Sequence[int], resolution: int) -> list[dict[str, Any]]:
         """Ray batches of views ``ids`` at ``resolution`` px on the long side (stylization, evaluation)."""
         from nerfart_plugin.data.rays import views_at_resolution

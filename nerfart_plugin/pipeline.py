@@ -1,4 +1,4 @@
-"""Run the stages a config asks for: reconstruct -> stylize -> export.
+"""Run the stages a config asks for: reconstruct -> stylize, export, render.
 
 The pieces live where their concern is:
 
@@ -28,13 +28,13 @@ from omegaconf import DictConfig
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.factories import SceneContext, Style, build_scene, build_style
 from nerfart_plugin.schema import RunConfig, parse_config, show
-from nerfart_plugin.stages import ExportStage, ReconstructStage, StylizeStage, stylization_source
+from nerfart_plugin.stages import ExportStage, ReconstructStage, RenderStage, StylizeStage, stylization_source
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 
 log = logging.getLogger("nerfart_plugin")
 
-STAGES = ("reconstruct", "stylize", "all", "export")
+STAGES = ("reconstruct", "stylize", "all", "export", "render")
 
 
 def validate_config(c: Any) -> dict:
@@ -155,6 +155,25 @@ class Pipeline:
         ckpt = Path(self.cfg.source_checkpoint) if self.cfg.source_checkpoint else self.recon_dir / "final.ckpt"
         self.results["export"] = ExportStage(self._loaded(), ckpt).run().summary
 
+    def render(self) -> None:
+        """``stage=render``: videos of ``render.run``, else of this config's finished stylization (with a prompt)
+        or reconstruction."""
+        run_dir = Path(self.cfg.render.run).expanduser() if self.cfg.render.run else self.finished_run_dir()
+        self.results["render"] = RenderStage(self.cfg, run_dir).run().summary
+
+    def finished_run_dir(self) -> Path:
+        """The finished stylization (with a prompt) or reconstruction of this config, for ``stage=render``."""
+        if self.cfg.prompt is None:
+            folder, what = self.recon.folder, "reconstruction"
+        else:
+            source, source_key = stylization_source(self._loaded(), self.recon)
+            folder, what = StylizeStage(self.scene_context, self.style, source, source_key).folder, "stylization"
+        if not folder.finished:
+            raise NerfArtError(f"stage=render: the {what} of these settings has not finished ({folder.path} has no "
+                               "final.ckpt). Run it first (stage=all, the same settings), or point render.run= at a "
+                               "run folder.")
+        return folder.path
+
     # ------------------------------------------------------------------ run
     def run(self) -> dict[str, Any]:
         """Run the configured stages.
@@ -171,9 +190,15 @@ class Pipeline:
     def _run(self) -> dict[str, Any]:
         stage = self.cfg.stage
         L.seed_everything(self.cfg.seed, workers=True, verbose=False)
-        if stage in ("stylize", "all"):
+        if stage == "render" and self.cfg.render.run:  # a given run folder: no data, no guidance
+            self.render()
+            return self.results
+        if stage in ("stylize", "all") or (stage == "render" and self.cfg.prompt is not None):
             self.prepare_guidance()
         self.load_data()
+        if stage == "render":
+            self.render()
+            return self.results
         if stage == "export":
             self.export()
             return self.results

@@ -111,6 +111,29 @@ class RenderConfig(Section):
     ndc_bound: Float = Setting(1.5, gt=0.0, le=100.0, description="half side of the field box of forward-facing "
                                "(NDC) captures: NDC x, y of off-centre cameras reach ~1.45 (fern: 1.44)")
     occupancy: OccupancyConfig = Field(default_factory=OccupancyConfig)
+    # ---- stage=render: videos of a finished run (none of these change a trained result)
+    run: Optional[PathText] = Setting(None, description="stage=render: the run folder (or a checkpoint in it) to "
+                                      "render; null: this config's stylization (with a prompt) or reconstruction",
+                                      changes_results=False)
+    path: str = Setting("orbit", min_length=1, description="stage=render camera path: orbit (around the capture) | "
+                        "spiral (forward-facing, LLFF's) | training (the training cameras in order) | a nerfstudio "
+                        "camera_path.json file", allowed="orbit, spiral, training or the path of a camera_path.json",
+                        changes_results=False)
+    path_frame: Literal["world", "normalized"] = Setting(
+        "world", description="frame of a camera_path.json's cameras: world (the capture's own, as the exported "
+        "meshes and cameras.json) | normalized (the training frame)", changes_results=False)
+    frames: Int = Setting(120, ge=1, le=100_000, description="frames of an orbit / spiral (a file or training: "
+                          "their own cameras)", changes_results=False)
+    resolution: Union[Literal["auto"], Annotated[Int, Field(ge=8, le=8192)]] = Setting(
+        "auto", description="long side of the rendered frames in pixels; auto: the run's own (a stylization's "
+        "stylize.resolution, a reconstruction's image size; a camera_path.json's render size)",
+        allowed="auto or an integer in [8, 8192]", changes_results=False)
+    fps: Optional[Int] = Setting(None, ge=1, le=240, description="frames per second of the video; null: the "
+                                 "camera_path.json's, else 24", changes_results=False)
+    channels: Annotated[list[Literal["rgb", "depth", "normal", "opacity", "side"]], Field(min_length=1)] = Setting(
+        ["rgb"], description="videos to write: rgb | depth (turbo colour map, one range for the whole path) | "
+        "normal | opacity | side (source | stylized, stylization runs)", changes_results=False)
+    png: bool = Setting(False, description="also write each channel as a PNG sequence", changes_results=False)
 
 
 class ReconstructConfig(Section):
@@ -281,7 +304,7 @@ PathText = Union[str, Path]
 class RunConfig(Section):
     """The top-level keys of a run's config, with the sections as nested models."""
 
-    stage: Literal["reconstruct", "stylize", "all", "export"] = Setting("all", description="which stages to run",
+    stage: Literal["reconstruct", "stylize", "all", "export", "render"] = Setting("all", description="which stages to run",
                                                                          changes_results=False)
     prompt: Optional[PromptText] = Setting(None, description="the style text; required for stylize/all")
     source_prompt: PromptText = Setting("auto", description="source text of the directional loss; auto: from "

@@ -194,6 +194,7 @@ class StylizeStage(TrainingStage):
                         "guidance": c.guidance["name"], "guidance_is_real": st.real, "stamp": st.stamp or None,
                         "experiment": c.experiment.model_dump(mode="json"), "steps": fit.steps,
                         "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
+                        "source_checkpoint": str(Path(self.source).resolve()),
                         **system.negatives_report()})
         warning = _unstyled_warning(st)
         if warning:
@@ -339,31 +340,24 @@ def export_mesh(scene: SceneContext, field: Any, stem: Path, texture: bool = Tru
 
 def in_frame(scene: SceneContext, mesh: Any) -> Any:
     """``mesh`` (field frame: normalized, or NDC for forward-facing captures) in ``export.frame``."""
-    from nerfart_plugin.export.frames import to_frame
+    from nerfart_plugin.export.frames import mesh_in_frame
 
-    s = scene.scene
-    ndc = None
-    if scene.ndc:
-        K = s.K[0].double()
-        ndc = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "W": float(s.width), "H": float(s.height),
-               "near_plane": 1.0}
-    return to_frame(mesh, scene.cfg.export.frame, s.normalization.double().numpy(), ndc)
+    return mesh_in_frame(mesh, scene.cfg.export.frame, scene.cameras)
 
 
 def write_in_frame(scene: SceneContext, mesh: Any, path: Path) -> Path:
     """Write a field-frame mesh in ``export.frame``, saying so in the file (see :mod:`export.frames`)."""
-    from nerfart_plugin.export import export_mesh as write_mesh
-    from nerfart_plugin.export.frames import frame_metadata
+    from nerfart_plugin.export.frames import write_mesh_in_frame
 
-    meta = frame_metadata(scene.cfg.export.frame, scene.scene.normalization.double().numpy(), ndc=scene.ndc)
-    return write_mesh(in_frame(scene, mesh), path, meta=meta)
+    return write_mesh_in_frame(mesh, path, scene.cfg.export.frame, scene.cameras)
 
 
 def write_cameras(scene: SceneContext, folder: Path) -> None:
-    """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer."""
+    """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer and
+    ``stage=render`` (:meth:`~nerfart_plugin.data.camera_path.CaptureCameras.from_json`)."""
     from nerfart_plugin.data.camera_path import viewer_cameras
 
-    atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame))
+    atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame, scene.ndc))
 
 
 class ExportStage:
@@ -382,6 +376,25 @@ class ExportStage:
         stem = self.checkpoint.parent / "mesh" / f"export-{self.checkpoint.stem}-r{self.scene.cfg.export.resolution}"
         mesh = export_mesh(self.scene, renderer.field, stem)
         return StageResult(self.checkpoint, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
+
+
+class RenderStage:
+    """``stage=render``: videos of a finished run along ``render.path`` into ``<run>/render/<path>-<F>f-<W>x<H>/``
+    (:meth:`nerfart_plugin.api.Run.write_render`); nothing is trained."""
+
+    def __init__(self, cfg: Any, run_dir: Path) -> None:
+        self.cfg, self.run_dir = cfg, Path(run_dir)
+
+    def run(self) -> StageResult:
+        from nerfart_plugin.api import open_run
+
+        rc = self.cfg.render
+        run = open_run(self.run_dir, device=self.cfg.device)
+        resolution = None if rc.resolution == "auto" else int(rc.resolution)
+        path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
+        out = run.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}"
+        summary = run.write_render(out, path, channels=rc.channels, fps=rc.fps, png=rc.png)
+        return StageResult(run.checkpoint, summary)
 
 
 def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -> tuple[Path, str]:

@@ -51,6 +51,7 @@ def test_notebook_structure():
     assert (
         "from nerfart_plugin.factories import load_config" in text
         and "from nerfart_plugin.pipeline import Pipeline" in text
+        and "from nerfart_plugin.api import open_run" in text
         and "._" not in text  # the public API only
     )
     assert (
@@ -123,5 +124,6 @@ def test_notebook_executes(tmp_path):
 
     img = iio.imread(shot)
     assert img.shape[:2] == (120, 240) and img[..., :3].std() > 5  # not blank
-    # validation render, stylization render, video strip, mesh screenshot
-    assert _images(nb) == 4
+    assert (out / "notebook_api_views.png").is_file() and (out / "api_render" / "rgb_UNSTYLED-toy.mp4").is_file()
+    # validation render, stylization render, video strip, mesh screenshot, the API's new view
+    assert _images(nb) == 5

@@ -9,7 +9,8 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Union
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Union
 
 import numpy as np
 import torch
@@ -104,19 +105,80 @@ def _spiral(c2w: np.ndarray, near: np.ndarray, far: np.ndarray, n_frames: int, n
     return np.stack(out)
 
 
-def orbit_path(scene: "Scene", n_frames: int = 120) -> torch.Tensor:
-    """A smooth, looping camera path for rendering a video of ``scene``.
+def _np(x: Any) -> np.ndarray:
+    return x.detach().cpu().double().numpy() if torch.is_tensor(x) else np.asarray(x, dtype=np.float64)
+
+
+def orbit_path(scene: Union["Scene", "CaptureCameras"], n_frames: int = 120, kind: str = "auto") -> torch.Tensor:
+    """A smooth, looping camera path for rendering a video of ``scene`` (a Scene or its
+    :class:`CaptureCameras`): ``kind`` "orbit", "spiral" or "auto" (spiral for forward-facing
+    captures, else orbit).
 
     Returns:
         c2w [F,3,4] float32, OpenCV, in the scene's normalized frame. Use the
         intrinsics of any training view (``scene.K[0]``) with it.
     """
-    c2w = scene.c2w.detach().cpu().double().numpy()
-    if scene.capture == "forward_facing":
-        path = _spiral(c2w, scene.near.cpu().double().numpy(), scene.far.cpu().double().numpy(), n_frames)
+    c2w = _np(scene.c2w)
+    if kind == "spiral" or (kind == "auto" and scene.capture == "forward_facing"):
+        path = _spiral(c2w, _np(scene.near), _np(scene.far), n_frames)
     else:
         path = _orbit(c2w, n_frames)
     return torch.from_numpy(path).float()
+
+
+@dataclass
+class CaptureCameras:
+    """A capture's cameras as a finished run needs them to render new views, without the photos.
+
+    Attributes:
+        c2w: [N,3,4] OpenCV camera-to-world in the normalized (training) frame.
+        K: [N,3,3] intrinsics at ``width`` x ``height`` pixels.
+        near / far: [N] ray bounds (normalized scene units).
+        capture: "object" | "unbounded" | "forward_facing"; ndc: rays are NDC-warped.
+        normalization: [4,4] T of x_norm = T x_world (the capture's world frame -> training frame).
+        train_ids: the training views; names: the image names.
+    """
+
+    c2w: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+    near: np.ndarray
+    far: np.ndarray
+    capture: str
+    ndc: bool
+    normalization: np.ndarray
+    train_ids: list[int] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
+
+    @classmethod
+    def from_scene(cls, scene: "Scene", ndc: bool) -> "CaptureCameras":
+        return cls(_np(scene.c2w)[:, :3, :4], _np(scene.K), int(scene.width), int(scene.height), _np(scene.near),
+                   _np(scene.far), scene.capture, bool(ndc), _np(scene.normalization), list(scene.train_ids),
+                   list(scene.image_names))
+
+    @classmethod
+    def from_json(cls, d: dict) -> "CaptureCameras":
+        """Read back a run's ``cameras.json`` (:func:`viewer_cameras`, in either frame)."""
+        T = np.asarray(d["normalization"], dtype=np.float64)
+        c2w = np.asarray(d["c2w"], dtype=np.float64)
+        if d.get("frame") == "world":
+            c2w = similarity_c2w(T, c2w)
+        n = len(c2w)
+        dist = np.linalg.norm(c2w[:, :3, 3], axis=-1)  # without bounds: the unit sphere's, seen from each camera
+        near = np.asarray(d["near"], dtype=np.float64) if "near" in d else np.maximum(dist - 1.0, 0.01)
+        far = np.asarray(d["far"], dtype=np.float64) if "far" in d else dist + 1.0
+        return cls(c2w, np.asarray(d["K"], dtype=np.float64), int(d["width"]), int(d["height"]), near, far,
+                   d.get("capture", "object"),
+                   bool(d.get("ndc", False)), T, list(d.get("train_ids", range(n))), list(d.get("names", [])))
+
+    def to_world(self, c2w: np.ndarray) -> np.ndarray:
+        """Cameras [F,3,4] of the normalized frame in the capture's world frame."""
+        return similarity_c2w(np.linalg.inv(self.normalization), np.asarray(c2w, dtype=np.float64))
+
+    def from_world(self, c2w: np.ndarray) -> np.ndarray:
+        """Cameras [F,3,4] of the capture's world frame in the normalized frame."""
+        return similarity_c2w(self.normalization, np.asarray(c2w, dtype=np.float64))
 
 
 def front_camera(c2w: np.ndarray) -> int:
@@ -137,12 +199,13 @@ def front_camera(c2w: np.ndarray) -> int:
     return int(np.argmax(unit @ (mean / np.linalg.norm(mean))))
 
 
-def viewer_cameras(scene: "Scene", frame: str = "normalized") -> dict:
-    """What a mesh viewer needs to open on the capture's own view, as plain data (JSON-ready):
-    every camera (``c2w`` [N,3,4] OpenCV, ``K``, image size, names) in ``frame`` (that of the exported
-    meshes: "normalized", as trained, or "world", the capture's own), the look-at ``centre``, the
-    ``up`` vector, the ``front`` camera index (:func:`front_camera`) and the ``normalization`` T
-    (x_norm = T x_world)."""
+def viewer_cameras(scene: "Scene", frame: str = "normalized", ndc: bool = False) -> dict:
+    """What a mesh viewer (and ``stage=render``) needs to open on the capture's own view, as plain data
+    (JSON-ready): every camera (``c2w`` [N,3,4] OpenCV, ``K``, image size, names, ``near`` / ``far`` in
+    normalized units, ``train_ids``) in ``frame`` (that of the exported meshes: "normalized", as trained,
+    or "world", the capture's own), the look-at ``centre``, the ``up`` vector, the ``front`` camera
+    index (:func:`front_camera`), ``ndc`` and the ``normalization`` T (x_norm = T x_world);
+    :meth:`CaptureCameras.from_json` reads it back."""
     c2w = scene.c2w.detach().cpu().double().numpy()[:, :3, :4]
     if frame == "world":
         c2w = similarity_c2w(np.linalg.inv(scene.normalization.detach().cpu().double().numpy()), c2w)
@@ -150,7 +213,9 @@ def viewer_cameras(scene: "Scene", frame: str = "normalized") -> dict:
     return {"frame": frame, "c2w": c2w.tolist(), "K": scene.K.detach().cpu().double().numpy().tolist(),
             "width": int(scene.width), "height": int(scene.height), "names": list(scene.image_names),
             "centre": look_at_centre(c2w).tolist(), "up": (up / max(np.linalg.norm(up), 1e-12)).tolist(),
-            "front": front_camera(c2w), "capture": scene.capture,
+            "front": front_camera(c2w), "capture": scene.capture, "ndc": bool(ndc),
+            "near": _np(scene.near).tolist(), "far": _np(scene.far).tolist(),
+            "train_ids": [int(i) for i in scene.train_ids],
             "normalization": scene.normalization.detach().cpu().double().numpy().tolist()}
 
 

@@ -13,6 +13,7 @@ PLY/OBJ comments, glTF ``extras``).
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
@@ -75,3 +76,21 @@ def frame_metadata(frame: str, normalization: np.ndarray, ndc: bool = False) -> 
         text += ", converted from NDC"
     return {"generator": "nerfart_plugin", "frame": frame, "description": text,
             "normalization_T": T.round(10).tolist(), "world_units_per_normalized_unit": 1.0 / scale}
+
+
+def mesh_in_frame(mesh: trimesh.Trimesh, frame: str, cams: Any) -> trimesh.Trimesh:
+    """A field-frame ``mesh`` (normalized, or NDC for forward-facing captures) in ``frame``, for the capture
+    of ``cams`` (:class:`~nerfart_plugin.data.camera_path.CaptureCameras`)."""
+    ndc = None
+    if cams.ndc:
+        K = np.asarray(cams.K[0], dtype=np.float64)
+        ndc = {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "W": float(cams.width), "H": float(cams.height),
+               "near_plane": 1.0}
+    return to_frame(mesh, frame, cams.normalization, ndc)
+
+
+def write_mesh_in_frame(mesh: trimesh.Trimesh, path: Path, frame: str, cams: Any) -> Path:
+    """Write a field-frame ``mesh`` in ``frame``, saying so in the file (:func:`frame_metadata`)."""
+    from nerfart_plugin.export.mesh import export_mesh
+
+    return export_mesh(mesh_in_frame(mesh, frame, cams), path, meta=frame_metadata(frame, cams.normalization, cams.ndc))

@@ -1,0 +1,222 @@
+"""The public Python API: open a finished run and render, mesh or inspect it (notebooks, scripts).
+
+::
+
+    from nerfart_plugin.api import open_run
+
+    run = open_run("outputs/stylizations/<run>")       # a reconstruction or a stylization folder
+    run.metrics["judge"], run.config.prompt             # what the run recorded
+    img = run.render(0)["rgb"]                           # training camera 0, [H,W,3] uint8
+    img = run.render(c2w, channels=("rgb", "depth"))     # any camera: [3,4] / [4,4] OpenCV, world frame
+    frames = run.render_path("spiral", frames=60)        # channel -> list of frames
+    run.write_render("renders/", path="orbit", channels=("rgb", "side"))   # mp4 (+ PNGs) + camera_path.json
+    mesh = run.mesh(resolution=256)                       # trimesh, the capture's world frame
+    scene = run.scene()                                   # the photos and cameras again (needs the data)
+
+``python -m nerfart_plugin stage=render render.run=<folder>`` does the same as :meth:`Run.write_render`.
+Nothing here trains: a finished run is only read (its ``final.ckpt``, ``config.yaml``,
+``metrics.json`` and ``cameras.json``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from nerfart_plugin.data.camera_path import CaptureCameras
+from nerfart_plugin.data.render_path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
+from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.schema import RunConfig
+
+log = logging.getLogger("nerfart_plugin")
+
+__all__ = ["Run", "open_run", "RenderPath", "CaptureCameras"]
+
+
+@dataclass
+class Run:
+    """A finished run folder, ready to render.
+
+    Attributes:
+        folder: the run folder; checkpoint: the checkpoint read.
+        kind: "reconstruction" or "stylization".
+        config: its typed config; metrics: its ``metrics.json``.
+        renderer: the trained renderer (eval mode, on ``device``).
+        cameras: the capture's cameras (normalized frame; from ``cameras.json``, else from the data).
+        stamp: the file suffix of a run whose guidance was not a real CLIP (``_VERIFY-imagenet``), else "".
+    """
+
+    folder: Path
+    checkpoint: Path
+    kind: str
+    config: RunConfig
+    metrics: dict
+    renderer: Any
+    cameras: CaptureCameras
+    device: torch.device
+    stamp: str = ""
+    _source: Optional["Run"] = field(default=None, repr=False)
+
+    # ------------------------------------------------------------------ what it is
+    @property
+    def resolution(self) -> int:
+        """The long side (pixels) the run was trained and evaluated at: a stylization's resolution, else the
+        images'."""
+        native = max(self.cameras.height, self.cameras.width)
+        if self.kind == "stylization" and self.config.stylize.resolution != "auto":
+            return int(self.config.stylize.resolution)
+        return native
+
+    @property
+    def source(self) -> "Run":
+        """The reconstruction a stylization started from (its ``final.ckpt``, as the run recorded it)."""
+        if self.kind != "stylization":
+            raise NerfArtError(f"{self.folder} is a reconstruction: it has no source run.")
+        if self._source is None:
+            ckpt = self.metrics.get("source_checkpoint") or self.config.source_checkpoint
+            if not ckpt or not Path(ckpt).is_file():
+                raise NerfArtError(f"{self.folder}: its source reconstruction ({ckpt or 'not recorded'}) is not on this "
+                                   "machine; copy that reconstruction folder back, or render without side.")
+            self._source = open_run(Path(ckpt).parent, Path(ckpt).name, device=str(self.device))
+        return self._source
+
+    def scene(self):
+        """The capture again (:class:`~nerfart_plugin.data.scene.Scene`: photos, masks, cameras), loaded
+        from the run's ``data`` settings (the data must be where the run found it)."""
+        from nerfart_plugin.factories import build_scene
+
+        return build_scene(self.config).scene
+
+    # ------------------------------------------------------------------ cameras
+    def camera_path(self, path: Union[str, RenderPath] = "orbit", frames: int = 120, resolution: Optional[int] = None,
+                    path_frame: str = "world") -> RenderPath:
+        """The cameras of ``path`` (orbit | spiral | training | a camera_path.json, see
+        :func:`~nerfart_plugin.data.render_path.resolve_path`) at ``resolution`` (long side; None: the run's)."""
+        if isinstance(path, RenderPath):
+            return path
+        file_size = resolution is None and path not in ("orbit", "spiral", "training")
+        return resolve_path(self.cameras, path, frames, None if file_size else (resolution or self.resolution), path_frame)
+
+    def camera(self, camera: Union[int, np.ndarray, torch.Tensor], resolution: Optional[int] = None,
+               frame: str = "world", K: Optional[np.ndarray] = None) -> RenderPath:
+        """One camera: a view index of the capture, or a camera-to-world matrix [3,4] / [4,4] (OpenCV axes)
+        in ``frame`` ("world": the capture's, as the exported meshes; "normalized") with the intrinsics ``K``
+        [3,3] at the capture's image size (default: training view 0's)."""
+        H, W = frame_size(self.cameras, resolution or self.resolution)
+        if isinstance(camera, (int, np.integer)):
+            i = int(camera)
+            if not 0 <= i < len(self.cameras.c2w):
+                raise NerfArtError(f"camera {i}: the capture has views 0..{len(self.cameras.c2w) - 1}.")
+            c2w, Ks = self.cameras.c2w[i:i + 1], scaled_K(self.cameras, [i], H, W)
+        else:
+            m = np.asarray(camera.detach().cpu() if torch.is_tensor(camera) else camera, dtype=np.float64)
+            if m.shape not in ((3, 4), (4, 4)):
+                raise NerfArtError(f"camera: expected a [3,4] or [4,4] camera-to-world matrix, got shape {m.shape}.")
+            c2w = m[None, :3, :4]
+            c2w = self.cameras.from_world(c2w) if frame == "world" else c2w
+            ref = self.cameras.train_ids[:1] or [0]
+            Ks = scaled_K(self.cameras, ref, H, W)
+            if K is not None:
+                Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32).clone()
+                Kt[0] *= W / self.cameras.width
+                Kt[1] *= H / self.cameras.height
+                Ks = Kt[None]
+        return RenderPath("camera", torch.as_tensor(c2w, dtype=torch.float32), Ks, H, W)
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, camera: Union[int, np.ndarray, torch.Tensor], resolution: Optional[int] = None,
+               channels: Sequence[str] = ("rgb",), frame: str = "world") -> dict[str, np.ndarray]:
+        """One view (see :meth:`camera`) -> channel -> [H,W,3] uint8 (channels of
+        :mod:`nerfart_plugin.rendering.frames`)."""
+        return {k: v[0] for k, v in self.render_path(self.camera(camera, resolution, frame), channels=channels,
+                                                     progress=False).items()}
+
+    def render_path(self, path: Union[str, RenderPath] = "orbit", frames: int = 120, resolution: Optional[int] = None,
+                    channels: Sequence[str] = ("rgb",), path_frame: str = "world",
+                    progress: bool = True) -> dict[str, list[np.ndarray]]:
+        """Every camera of ``path`` (:meth:`camera_path`) -> channel -> list of [H,W,3] uint8 frames."""
+        from nerfart_plugin.rendering.frames import render_cameras
+
+        rp = self.camera_path(path, frames, resolution, path_frame)
+        if "side" in channels and self.kind != "stylization":
+            raise ConfigError(f"render.channels=side shows source | stylized, but {self.folder} is a reconstruction: "
+                              "render a stylization run, or drop side.")
+        source = self.source.renderer if "side" in channels else None
+        label = "stylized" + (f" ({self.stamp.strip('_')})" if self.stamp else "")
+        cams = self.cameras
+        return render_cameras(self.renderer, rp, ndc=cams.ndc, near=float(cams.near.min()), far=float(cams.far.max()),
+                              chunk=self.config.render.chunk, device=self.device, channels=channels, source=source,
+                              labels=("source", label), progress=progress)
+
+    def write_render(self, out_dir: Union[str, Path], path: Union[str, RenderPath] = "orbit", frames: int = 120,
+                     resolution: Optional[int] = None, channels: Sequence[str] = ("rgb",), fps: Optional[int] = None,
+                     png: bool = False, path_frame: str = "world") -> dict[str, Any]:
+        """Render ``path`` and write ``<out_dir>/<channel><stamp>.mp4`` per channel (and, ``png``, the frames
+        as ``<channel>/00000.png`` ...) plus ``camera_path.json`` (nerfstudio format, world frame) to render the
+        same path again or edit it. Returns what was written."""
+        from nerfart_plugin.export.video import save_image, write_video
+
+        out = Path(out_dir)
+        rp = self.camera_path(path, frames, resolution, path_frame)
+        fps = int(fps or rp.fps or 24)
+        rendered = self.render_path(rp, channels=channels)
+        files: dict[str, Any] = {"camera_path": str(write_camera_path(rp, self.cameras, out / "camera_path.json", fps))}
+        for channel, images in rendered.items():
+            files[channel] = str(write_video(images, out / f"{channel}{self.stamp}.mp4", fps=fps))
+            if png:
+                for i, img in enumerate(images):
+                    save_image(img, out / f"{channel}{self.stamp}" / f"{i:05d}.png")
+        log.info("rendered %d frames of %s (%dx%d) -> %s", len(rp), rp.name, rp.width, rp.height, out)
+        return {"dir": str(out), "frames": len(rp), "width": rp.width, "height": rp.height, "fps": fps, "files": files}
+
+    # ------------------------------------------------------------------ geometry
+    def mesh(self, resolution: int = 128, frame: str = "world", level: Optional[float] = None):
+        """The field's surface by marching cubes (``trimesh.Trimesh`` with vertex colours) in ``frame``
+        ("world": the capture's, as the pipeline's exports; "normalized": the training frame)."""
+        from nerfart_plugin.export import MeshExtractor
+        from nerfart_plugin.export.frames import mesh_in_frame
+
+        ec = self.config.export
+        field = self.renderer.field
+        ex = MeshExtractor(resolution=int(resolution), bound=float(field.bound), chunk=ec.chunk,
+                           level=ec.level if level is None else level, remove_floaters=ec.remove_floaters)
+        return mesh_in_frame(ex.extract(field), frame, self.cameras)
+
+
+def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: str = "auto") -> Run:
+    """Open a reconstruction or stylization folder (or pass a checkpoint file in one) for rendering.
+
+    Args:
+        folder: ``outputs/reconstructions/<run>`` or ``outputs/stylizations/<run>`` (or a ``.ckpt`` in it).
+        checkpoint: the checkpoint to read (``last.ckpt`` for an unfinished run).
+        device: auto (CUDA, then MPS, then CPU) | cpu | cuda | cuda:N | mps.
+    """
+    import json
+
+    from nerfart_plugin.factories import build_scene, load_run
+    from nerfart_plugin.utils.device import pick_device
+
+    folder = Path(folder).expanduser()
+    if folder.suffix == ".ckpt":
+        folder, checkpoint = folder.parent, folder.name
+    loaded = load_run(folder, checkpoint)
+    cfg = loaded.cfg
+    kind = "stylization" if (loaded.metrics.get("prompt") is not None or folder.parent.name == "stylizations") \
+        else "reconstruction"
+    cams_file = folder / "cameras.json"
+    if cams_file.is_file():
+        cameras = CaptureCameras.from_json(json.loads(cams_file.read_text()))
+    else:  # a run written before cameras.json: the cameras from the data
+        log.info("%s has no cameras.json: reading the cameras from its data (%s)", folder, cfg.data.get("path"))
+        cameras = build_scene(cfg).cameras
+    renderer = loaded.renderer
+    if kind == "stylization" and cfg.stylize.num_samples:  # rendered as the stylization was evaluated
+        renderer.num_samples = int(cfg.stylize.num_samples)
+    dev = pick_device(device)
+    return Run(folder, loaded.checkpoint, kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
+               stamp=loaded.metrics.get("stamp") or "")
