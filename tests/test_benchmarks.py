@@ -180,3 +180,21 @@ def test_stylization_quality_quick(out: Path, tmp_path: Path) -> None:
     # report-only rebuilds the section from the raw results without running anything
     assert mod.main(["--report-only", "--raw", str(raw), "--out", str(out), "--scenes", "head"]) == 0
     assert "| full |" in _section(out.read_text(), "stylization_quality")
+
+
+def test_gpu_section_says_not_measured_without_cuda_and_tabulates_a_gpu_run(out: Path, tmp_path: Path) -> None:
+    import torch
+
+    mod = _load("gpu")
+    if not torch.cuda.is_available():
+        assert mod.main(["--quick", "--raw", str(tmp_path / "gpu.json"), "--out", str(out)]) == 0
+        sec = _check_common(out.read_text(), "gpu", "--quick")
+        assert "GPU: not measured" in sec and json.loads((tmp_path / "gpu.json").read_text())["cuda"] is False
+    # the table of a GPU run, from raw figures (what benchmarks/gpu_check.sh records)
+    raw = {"cuda": True, "device": "NVIDIA X", "torch": "2.x", "cuda_version": "13.0",
+           "paper_job": {"reconstruct_s": 100.0, "stylize_s": 260.0, "job_s": 360.0, "psnr": 27.0, "steps": 120,
+                         "top5_source": 0.0, "top5": 1.0, "peak_gib": 3.0},
+           "memory_512": {"peak_gib": 3.5, "step_s": 0.4, "steps": 10}}
+    text = mod.report(raw, _load("gpu").common.machine_info(), "python benchmarks/gpu.py", quick=False)
+    assert "| paper-resolution job (fangzhou_nature, 270x480, preset=paper_res): total | 6.0 min | <= 5 min | no |" in text
+    assert "3.50 GiB | <= 4 GiB | yes" in text and "not measured" not in text
