@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import datetime as _dt
 import json
 import os
@@ -205,6 +206,16 @@ def finish(args: argparse.Namespace, name: str, text: str) -> Path:
         write_section(out, name, text)
         print(f"wrote section {name!r} of {out}")
     return out
+
+
+def start_logging(logger: logging.Logger) -> dict[str, Any]:
+    """A benchmark's start: INFO logging with times, the machine (:func:`machine_info`, read now), the
+    project's and Lightning's chatter quietened (:func:`quiet_logs`), ``logger`` kept at INFO."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    info = machine_info()
+    quiet_logs()
+    logger.setLevel(logging.INFO)
+    return info
 
 
 def quiet_logs() -> None:

@@ -112,12 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out-root", type=Path, default=None, help="output_root of the runs (default: a scratch folder)")
     common.add_common_args(p)
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     import torch
 
-    info = common.machine_info()
-    common.quiet_logs()
-    log.setLevel(logging.INFO)
+    info = common.start_logging(log)
     raw: dict[str, Any] = {"cuda": torch.cuda.is_available()}
     if not raw["cuda"]:
         raw["reason"] = f"no CUDA device on the machine that ran it ({info.get('cpu', 'CPU only')})"

@@ -227,10 +227,7 @@ def main(argv: list[str] | None = None) -> int:
                         "to report together with this one")
     common.add_common_args(p)
     args = p.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    info = common.machine_info()
-    common.quiet_logs()
-    log.setLevel(logging.INFO)
+    info = common.start_logging(log)
     raw = args.raw or common.raw_path(NAME, args.quick)
     runs: list[dict[str, Any]] = json.loads(raw.read_text()) if raw.is_file() else []
     others = [r for f in args.include_results for r in json.loads(Path(f).read_text())]

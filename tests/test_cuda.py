@@ -11,25 +11,21 @@ import torch
 
 from pipeline_helpers import tiny_cfg
 
-from nerfart_plugin.data.rays import camera_batch
+from render_helpers import front_view, tiny_renderer
+
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
-from nerfart_plugin.systems.base import build_renderer, to_device
-from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.systems.base import to_device
 
 pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")]
 
 
 def _renderer(backbone: str, occupancy: int = 8) -> torch.nn.Module:
-    setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, 12, True)
-    enc = {"name": "grid", "resolution": 16} if backbone != "neus" else {"name": "frequency", "n_freqs": 4}
-    return build_renderer({"name": backbone}, enc, {"occupancy": {"warmup_steps": 0}}, setup)
+    return tiny_renderer(backbone, occupancy)
 
 
-def _view(H: int = 24, W: int = 20) -> dict:
-    K = torch.tensor([[24.0, 0, W / 2], [0, 24.0, H / 2], [0, 0, 1]])
-    c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.5]])
-    return camera_batch(K, c2w, H, W, 1.0, 4.0, ndc=False)
+def _view() -> dict:
+    return front_view(24, 20, 24.0)
 
 
 def _loss(rgb: torch.Tensor) -> torch.Tensor:

@@ -7,22 +7,15 @@ import torch
 
 from nerfart_plugin.losses import weight_regularization
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
-from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.scene_setup import SceneSetup
-from nerfart_plugin.data.rays import camera_batch
+from render_helpers import front_view, tiny_renderer
 
 
 def _renderer(backbone: str, occupancy: int) -> torch.nn.Module:
-    setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, 12, True)
-    enc = {"name": "grid", "resolution": 16} if backbone != "neus" else {"name": "frequency", "n_freqs": 4}
-    return build_renderer({"name": backbone}, enc, {"occupancy": {"warmup_steps": 0}}, setup)
+    return tiny_renderer(backbone, occupancy)
 
 
 def _view(H: int = 12, W: int = 10) -> dict:
-    K = torch.tensor([[12.0, 0, W / 2], [0, 12.0, H / 2], [0, 0, 1]])
-    c2w = torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -2.5]])
-    b = camera_batch(K, c2w, H, W, 1.0, 4.0, ndc=False)
-    return b
+    return front_view(H, W, 12.0)
 
 
 def _image_loss(rgb: torch.Tensor) -> torch.Tensor:
