@@ -145,6 +145,7 @@ def test_finished_runs_re_render_along_any_path(tmp_path: Path) -> None:
     # the API: a training camera by index or by its world-frame matrix renders the same image
     style = open_run(style_dir, device="cpu")
     assert style.kind == "stylization" and style.source.kind == "reconstruction"
+    assert open_run(style_dir / "final.ckpt", device="cpu").folder == style_dir  # a checkpoint names its run
     world = style.cameras.to_world(style.cameras.c2w[3:4])[0]
     by_index, by_matrix = style.render(3)["rgb"], style.render(world)["rgb"]
     assert by_index.shape == (24, 24, 3) and np.abs(by_index.astype(int) - by_matrix.astype(int)).max() <= 1
