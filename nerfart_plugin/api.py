@@ -28,7 +28,7 @@ from typing import Any, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from nerfart_plugin.data.camera_path import CaptureCameras
+from nerfart_plugin.data.camera_path import CaptureCameras, scale_intrinsics
 from nerfart_plugin.data.render_path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.schema import RunConfig
@@ -122,10 +122,8 @@ class Run:
             ref = self.cameras.train_ids[:1] or [0]
             Ks = scaled_K(self.cameras, ref, H, W)
             if K is not None:
-                Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32).clone()
-                Kt[0] *= W / self.cameras.width
-                Kt[1] *= H / self.cameras.height
-                Ks = Kt[None]
+                Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32)
+                Ks = scale_intrinsics(Kt, W / self.cameras.width, H / self.cameras.height)[None]
         return RenderPath("camera", torch.as_tensor(c2w, dtype=torch.float32), Ks, H, W)
 
     # ------------------------------------------------------------------ rendering

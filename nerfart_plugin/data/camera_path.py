@@ -206,17 +206,17 @@ def viewer_cameras(scene: "Scene", frame: str = "normalized", ndc: bool = False)
     or "world", the capture's own), the look-at ``centre``, the ``up`` vector, the ``front`` camera
     index (:func:`front_camera`), ``ndc`` and the ``normalization`` T (x_norm = T x_world);
     :meth:`CaptureCameras.from_json` reads it back."""
-    c2w = scene.c2w.detach().cpu().double().numpy()[:, :3, :4]
+    c2w = _np(scene.c2w)[:, :3, :4]
     if frame == "world":
-        c2w = similarity_c2w(np.linalg.inv(scene.normalization.detach().cpu().double().numpy()), c2w)
+        c2w = similarity_c2w(np.linalg.inv(_np(scene.normalization)), c2w)
     up = -c2w[:, :3, 1].mean(0)
-    return {"frame": frame, "c2w": c2w.tolist(), "K": scene.K.detach().cpu().double().numpy().tolist(),
+    return {"frame": frame, "c2w": c2w.tolist(), "K": _np(scene.K).tolist(),
             "width": int(scene.width), "height": int(scene.height), "names": list(scene.image_names),
             "centre": look_at_centre(c2w).tolist(), "up": (up / max(np.linalg.norm(up), 1e-12)).tolist(),
             "front": front_camera(c2w), "capture": scene.capture, "ndc": bool(ndc),
             "near": _np(scene.near).tolist(), "far": _np(scene.far).tolist(),
             "train_ids": [int(i) for i in scene.train_ids],
-            "normalization": scene.normalization.detach().cpu().double().numpy().tolist()}
+            "normalization": _np(scene.normalization).tolist()}
 
 
 def similarity_c2w(S: np.ndarray, c2w: np.ndarray) -> np.ndarray:

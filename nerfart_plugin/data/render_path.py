@@ -30,7 +30,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from nerfart_plugin.data.camera_path import CaptureCameras, orbit_path
+from nerfart_plugin.data.camera_path import CaptureCameras, orbit_path, scale_intrinsics
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.utils.io import atomic_write_json
 
@@ -70,10 +70,7 @@ def frame_size(cams: CaptureCameras, long_side: Optional[int]) -> tuple[int, int
 
 def scaled_K(cams: CaptureCameras, ids: list[int], H: int, W: int) -> torch.Tensor:
     """[len(ids),3,3] intrinsics of views ``ids`` for images resized to H x W."""
-    K = torch.as_tensor(cams.K[ids], dtype=torch.float32).clone()
-    K[:, 0] *= W / cams.width
-    K[:, 1] *= H / cams.height
-    return K
+    return scale_intrinsics(torch.as_tensor(cams.K[ids], dtype=torch.float32), W / cams.width, H / cams.height)
 
 
 def resolve_path(cams: CaptureCameras, spec: str, frames: int = 120, long_side: Optional[int] = None,
