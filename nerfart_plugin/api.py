@@ -213,8 +213,10 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         log.info("%s has no cameras.json: reading the cameras from its data (%s)", folder, cfg.data.get("path"))
         cameras = build_scene(cfg).cameras
     renderer = loaded.renderer
-    if kind == "stylization" and cfg.stylize.num_samples:  # rendered as the stylization was evaluated
-        renderer.num_samples = int(cfg.stylize.num_samples)
+    if kind == "stylization":  # rendered as the stylization was evaluated
+        renderer.view_samples = cfg.stylize.num_samples
+        if cfg.stylize.num_samples:
+            renderer.num_samples = int(cfg.stylize.num_samples)
     dev = pick_device(device)
     return Run(folder, loaded.checkpoint, kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
                stamp=loaded.metrics.get("stamp") or "")

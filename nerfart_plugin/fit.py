@@ -56,7 +56,7 @@ def build_trainer(max_steps: int, device: torch.device, trainer_cfg: TrainerConf
     return L.Trainer(
         max_steps=int(max_steps), accelerator=accelerator, devices=devices, precision=tc.precision,
         strategy=tc.strategy, num_nodes=tc.num_nodes, log_every_n_steps=tc.log_every_n_steps,
-        logger=build_loggers(_plain(logger_cfg), run_dir) if logged else False,
+        logger=build_loggers(logger_cfg, run_dir) if logged else False,
         callbacks=[*callbacks, TQDMProgressBar(refresh_rate=10)] if logged else list(callbacks),
         enable_progress_bar=logged, enable_checkpointing=False, enable_model_summary=False, num_sanity_val_steps=0,
         default_root_dir=str(run_dir) if logged else None, **kw,
@@ -77,13 +77,6 @@ class FitResult:
     @property
     def is_global_zero(self) -> bool:
         return self.trainer.global_rank == 0
-
-
-def _plain(cfg: Any) -> Optional[dict]:
-    """A config section (pydantic model or mapping) as a dict (None stays None)."""
-    if cfg is None:
-        return None
-    return cfg.model_dump() if hasattr(cfg, "model_dump") else dict(cfg)
 
 
 def fit_stage(system: L.LightningModule, folder: RunFolder, *, steps: int, device: torch.device,

@@ -12,42 +12,44 @@ from __future__ import annotations
 import importlib.util
 import logging
 from pathlib import Path
-from typing import Any, Optional
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from nerfart_plugin.errors import ConfigError
 
+if TYPE_CHECKING:  # pragma: no cover
+    from nerfart_plugin.schema import LoggerConfig
+
 log = logging.getLogger(__name__)
 
-LOGGERS = ("tensorboard", "csv", "wandb")
 
 
-def build_loggers(cfg: Optional[dict[str, Any]], run_dir: Path) -> list[Any]:
-    """Lightning loggers for a run folder from the ``logger`` config (``None``: tensorboard + csv)."""
+def build_loggers(cfg: "LoggerConfig | dict[str, Any] | None", run_dir: Path) -> list[Any]:
+    """Lightning loggers for a run folder from the ``logger`` section (a :class:`LoggerConfig` or a dict of
+    its keys; ``None``: its defaults, tensorboard + csv)."""
     from lightning.pytorch.loggers import CSVLogger
 
-    cfg = dict(cfg or {"name": "tensorboard", "csv": True})
-    name = cfg.get("name", "tensorboard")
-    if name not in LOGGERS:
-        raise ConfigError(f"logger={name!r} is not one of {', '.join(LOGGERS)} (conf/logger/).")
+    from nerfart_plugin.schema import LoggerConfig, section
+
+    c = section(LoggerConfig, cfg)
     out: list[Any] = []
-    if name == "tensorboard":
+    if c.name == "tensorboard":
         if importlib.util.find_spec("tensorboard") is None and importlib.util.find_spec("tensorboardX") is None:
             raise ConfigError("logger=tensorboard needs the tensorboard package: pip install tensorboard "
                               "(a dependency of this project; reinstall it), or use logger=csv.")
         from lightning.pytorch.loggers import TensorBoardLogger
 
         out.append(TensorBoardLogger(str(run_dir), name="tb", default_hp_metric=False))
-    elif name == "wandb":
+    elif c.name == "wandb":
         if importlib.util.find_spec("wandb") is None:
             raise ConfigError("logger=wandb needs the wandb package: pip install wandb (and wandb login, or "
                               "logger.mode=offline); or use logger=tensorboard.")
         from lightning.pytorch.loggers import WandbLogger
 
-        out.append(WandbLogger(project=cfg.get("project") or "nerfart_plugin", entity=cfg.get("entity"),
-                               mode=cfg.get("mode") or "online", save_dir=str(run_dir), name=run_dir.name))
-    if name == "csv" or cfg.get("csv", True):
+        out.append(WandbLogger(project=c.project, entity=c.entity, mode=c.mode, save_dir=str(run_dir),
+                               name=run_dir.name))
+    if c.name == "csv" or c.csv:
         out.append(CSVLogger(str(run_dir), name="logs"))
     return out
 

@@ -104,6 +104,13 @@ class RenderConfig(Section):
     chunk: Int = Setting(4096, ge=1, le=2**20, description="rays per chunk of no-grad full-view rendering "
                          "(validation, evaluation, export renders; memory only)", off=_CHUNK_OFF,
                          changes_results=False)
+    view_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray of full views rendered "
+                                          "without grad (validation, evaluation, videos, stage=render); null: "
+                                          "render.num_samples", changes_results=False)
+    stop_transmittance: Float = Setting(1e-4, ge=0.0, le=0.1, description="no-grad renders (evaluation, videos, "
+                                        "the stylization's first pass) stop marching a ray once its transmittance "
+                                        "is below this, so each pixel changes by less than it; 0: every sample",
+                                        changes_results=False)
     background_color: Optional[Color] = Setting([1.0, 1.0, 1.0], description="[r, g, b] in [0, 1] behind the field "
                                                 "when no background model is used; null: no compositing")
     background_model: AutoBool = Setting("auto", description="learned environment map: auto (unbounded captures "
@@ -656,7 +663,7 @@ def check_encoding(cfg: Any, prefix: str = "encoding") -> tuple[dict, list[Issue
     if cls is None:
         return cfg, issues + issues2
     model = component_model(cls, frozenset({"bound", "in_dim"}),
-                            (("name", str, ...), ("mlp_lr_scale", EncodingScale, 1.0)))
+                            (("name", str, ...), ("mlp_lr_scale", EncodingScale, cls.mlp_lr_scale)))
     return _check(model, cfg, prefix)
 
 

@@ -47,7 +47,11 @@ def _project_loggers_propagate():
 
 
 def _tree(path: Path) -> set[str]:
-    return {str(p.relative_to(path)) for p in path.rglob("*")} if path.is_dir() else set()
+    """Paths under ``path``, except ``benchmarks/``: the benchmarks' own output roots, which a benchmark
+    running beside the tests writes (the tests' benchmark runs go to NERFART_BENCH_SCRATCH / tmp)."""
+    if not path.is_dir():
+        return set()
+    return {str(p.relative_to(path)) for p in path.rglob("*") if p.relative_to(path).parts[0] != "benchmarks"}
 
 
 @pytest.fixture(autouse=True, scope="session")

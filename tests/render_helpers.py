@@ -9,12 +9,12 @@ from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.systems.scene_setup import SceneSetup
 
 
-def tiny_renderer(backbone: str, occupancy: int) -> torch.nn.Module:
+def tiny_renderer(backbone: str, occupancy: int, samples: int = 12, **backbone_kw: object) -> torch.nn.Module:
     """``backbone`` on a 16-cell grid (NeuS: a 4-frequency MLP) in an object setup; ``occupancy``: grid cells
-    per side (0: no occupancy grid)."""
-    setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, 12, True)
+    per side (0: no occupancy grid); ``samples`` per ray; ``backbone_kw``: backbone settings."""
+    setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, samples, True)
     enc = {"name": "grid", "resolution": 16} if backbone != "neus" else {"name": "frequency", "n_freqs": 4}
-    return build_renderer({"name": backbone}, enc, {"occupancy": {"warmup_steps": 0}}, setup)
+    return build_renderer({"name": backbone, **backbone_kw}, enc, {"occupancy": {"warmup_steps": 0}}, setup)
 
 
 def front_view(H: int, W: int, focal: float) -> dict:

@@ -198,3 +198,16 @@ def test_gpu_section_says_not_measured_without_cuda_and_tabulates_a_gpu_run(out:
     text = mod.report(raw, _load("gpu").common.machine_info(), "python benchmarks/gpu.py", quick=False)
     assert "| paper-resolution job (fangzhou_nature, 270x480, preset=paper_res): total | 6.0 min | <= 5 min | no |" in text
     assert "3.50 GiB | <= 4 GiB | yes" in text and "not measured" not in text
+
+
+def test_render_speed_quick(out: Path, tmp_path: Path) -> None:
+    mod = _load("render_speed")
+    argv = ["--quick", "--scenes", "head", "--samples", "8", "16", "--out-root", str(tmp_path / "runs"),
+            "--out", str(out)]
+    assert mod.main(argv) == 0
+    sec = _check_common(out.read_text(), "render_speed", "--samples 8 16")
+    rows = _table_rows(sec)
+    assert len(rows) == 4 and rows[0].startswith("| dense | 8 |") and rows[3].startswith("| march | 16 |")
+    # the marched render is the dense one within stop_transmittance: the same PSNR to 0.01 dB
+    psnr = [float(r.split("|")[4]) for r in rows]
+    assert abs(psnr[0] - psnr[2]) < 0.05 and abs(psnr[1] - psnr[3]) < 0.05

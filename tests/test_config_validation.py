@@ -295,12 +295,15 @@ def _section_model(section: str, values: dict) -> type[BaseModel]:
     if section == "backbone":
         return schema.component_model(registry.get("backbone", values["name"]), frozenset({"encoding_cfg", "bound"}),
                                       (("name", str, ...),))
-    return schema.component_model(registry.get("encoding", values["name"]), frozenset({"bound", "in_dim"}),
-                                  (("name", str, ...), ("mlp_lr_scale", float, 1.0)))
+    cls = registry.get("encoding", values["name"])
+    return schema.component_model(cls, frozenset({"bound", "in_dim"}),
+                                  (("name", str, ...), ("mlp_lr_scale", float, cls.mlp_lr_scale)))
 
 
+#: every option of every component group is among the variants (test_property_test_covers_every_section)
 VARIANTS = [("guidance=toy",), ("backbone=nerf", "encoding=frequency"), ("backbone=neus",),
-            ("data=llff", "data.path=x"), ("data=selfie", "data.path=x", "guidance=clip")]
+            ("data=llff", "data.path=x"), ("data=selfie", "data.path=x", "guidance=clip"),
+            ("data=nerfstudio", "data.path=x", "guidance=imagenet")]
 SETTINGS = sorted({(v, key) for v in VARIANTS for key in _leaves(schema.RunConfig, "") + _component_leaves(v)})
 
 BAD_VALUES = st.one_of(
@@ -402,11 +405,41 @@ def test_every_setting_with_every_edge_value(tmp_path, variant):
 
 
 def test_property_test_covers_every_section():
+    """Every setting of the schema and every option of every component group is driven: a new section or
+    group option is covered without editing this list."""
     sections = {key.split(".")[0] for _, key in SETTINGS}
-    assert {"render", "reconstruct", "stylize", "export", "trainer", "experiment", "data", "backbone", "encoding",
-            "guidance", "seed", "prompt", "stage", "lock_timeout"} <= sections
+    assert set(schema.RunConfig.model_fields) <= sections, set(schema.RunConfig.model_fields) - sections
+    chosen = {o for v in VARIANTS for o in v if "=" in o and "." not in o.split("=")[0]}
+    defaults = {f"{g}={cfg()[g]['kind' if g == 'data' else 'name']}" for g in ("data", "backbone", "encoding", "guidance")}
+    for group in ("data", "backbone", "encoding", "guidance"):
+        missing = {f"{group}={o}" for o in group_options(group)} - chosen - defaults
+        assert not missing, f"no property-test variant selects {sorted(missing)}: add one to VARIANTS"
     keys = {key for _, key in SETTINGS}
     assert {"data.sfm_threads", "data.factor", "guidance.clip.precision", "guidance.toy.input_size",
             "guidance.vgg.layers", "guidance.edges.num_scales", "backbone.inv_s_max", "backbone.beta_min",
             "backbone.density_activation", "encoding.n_freqs", "encoding.n_components", "encoding.mlp_lr_scale",
             "backbone.dir_encoding.degree", "render.occupancy.threshold", "trainer.precision"} <= keys
+
+
+#: constructor defaults of ``None`` that stand for a concrete setting the YAML spells out
+_NONE_MEANS = {"dir_encoding": {"name": "sh", "degree": 4}}
+
+
+@pytest.mark.parametrize("group", ["backbone", "encoding"])
+def test_component_yaml_repeats_the_constructor_defaults(group: str) -> None:
+    """conf/<group>/<name>.yaml lists a component's settings for --cfg job; every value it states is the
+    constructor's own default (or wires a render.* knob), so the Python API and the CLI build one model."""
+    import yaml
+
+    from nerfart_plugin import registry
+
+    for path in sorted((config_dir() / group).glob("*.yaml")):
+        values = yaml.safe_load(path.read_text())
+        cls = registry.get(group, values["name"])
+        params = schema.init_parameters(cls)
+        for key, value in values.items():
+            if key == "name" or (isinstance(value, str) and value.startswith("${")):
+                continue
+            default = params[key][1] if key in params else getattr(cls, key, ...)
+            default = _NONE_MEANS.get(key, default) if default is None else default
+            assert value == default, f"{path.name}: {key}={value!r} but the constructor's default is {default!r}"

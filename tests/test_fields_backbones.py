@@ -57,7 +57,8 @@ def test_backbone_renders_with_finite_grads(backbone: str, enc: str) -> None:
     full = r.render_chunked({**_batch(R), "H": 4, "W": 8}, chunk=10)
     assert full["rgb"].shape == (R, 3) and not full["rgb"].requires_grad and full["H"] == 4
     assert ("normal" in full) == field.is_sdf
-    torch.testing.assert_close(full["rgb"], r(_batch(R))["rgb"].detach(), atol=1e-5, rtol=0)
+    # early ray termination: within the renderer's stop_transmittance of the dense render
+    torch.testing.assert_close(full["rgb"], r(_batch(R))["rgb"].detach(), atol=r.stop_transmittance + 1e-5, rtol=0)
 
 
 @pytest.mark.parametrize("backbone", ["nerf", "volsdf", "neus"])

@@ -31,7 +31,7 @@ def test_tensorboard_writes_scalars_and_images(tmp_path) -> None:
 
 def test_csv_only_and_errors(tmp_path) -> None:
     assert [type(lg).__name__ for lg in build_loggers({"name": "csv"}, tmp_path)] == ["CSVLogger"]
-    with pytest.raises(ConfigError, match="logger='mlflow'"):
+    with pytest.raises(ConfigError, match="logger.name='mlflow': one of tensorboard, csv, wandb"):
         build_loggers({"name": "mlflow"}, tmp_path)
     if importlib.util.find_spec("wandb") is None:
         with pytest.raises(ConfigError, match="pip install wandb"):

@@ -172,6 +172,15 @@ def _copy_frames(paths: list[Path], out_dir: Path, max_frames: int, long_side: O
 
 
 # --------------------------------------------------------------------------- SfM
+def _pycolmap_version() -> str:
+    """The installed pycolmap's version (part of the SfM cache key: the cameras are a function of it)."""
+    try:
+        import pycolmap
+    except ImportError:  # a cache of frames that needs no SfM yet; run_sfm says how to install it
+        return "none"
+    return str(getattr(pycolmap, "__version__", "unknown"))
+
+
 def run_sfm(
     image_dir: Path,
     out_dir: Path,
@@ -297,7 +306,7 @@ def _prepare(
 ) -> tuple[Path, Path, list[Path], Optional[Path]]:
     """Return (image folder, model folder, files defining the scene, mask folder)."""
     settings = dict(fps=fps, max_frames=max_frames, long=frame_long_side, matcher=matcher, cam=camera_model,
-                    seed=sfm_seed, threads=sfm_threads, v=3)
+                    seed=sfm_seed, threads=sfm_threads, v=3, pycolmap=_pycolmap_version())
     if root.is_file():
         if root.suffix.lower() not in VIDEO_EXTS:
             raise DataError(f"{root} is not a video ({'/'.join(VIDEO_EXTS)}) nor a folder of frames: fix data.path.")

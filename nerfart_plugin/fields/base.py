@@ -36,13 +36,6 @@ def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, n_hidden_layers: int, a
     return nn.Sequential(*layers)
 
 
-class _Softplus100(nn.Module):
-    """``softplus(100 x) / 100`` (= ``nn.Softplus(beta=100)``, ~2x faster on CPU)."""
-
-    def forward(self, x: Tensor) -> Tensor:
-        return F.softplus(100.0 * x) * 0.01
-
-
 class GeometricInitMLP(nn.Module):
     """SDF MLP with the geometric initialisation of SAL/IDR (Atzmon & Lipman 2020).
 
@@ -67,7 +60,7 @@ class GeometricInitMLP(nn.Module):
         dims = [3 + extra_dim] + [hidden_dim] * max(1, n_hidden_layers)
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.out = nn.Linear(dims[-1], 1 + feature_dim)
-        self.act = _Softplus100()
+        self.act = nn.Softplus(beta=100.0)
         with torch.no_grad():
             for i, lin in enumerate(self.hidden):
                 nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(lin.out_features))
@@ -118,6 +111,9 @@ class Field(nn.Module):
         occupancy_threshold: score above which the occupancy grid marks a cell occupied
             (None: the grid's adaptive density threshold).
         regularizer_names: the terms :meth:`regularizers` returns while training.
+        alpha_lookahead: how many following samples of a ray :meth:`alpha` reads besides the section's
+            own (0: each opacity is local; NeuS' section estimate reads the next sample's SDF: 1), so
+            that a renderer marching a ray block by block evaluates them with each block.
     """
 
     is_sdf: bool = False
@@ -125,6 +121,7 @@ class Field(nn.Module):
     mesh_level: float = 0.0
     mesh_inside_is_below: bool = True
     occupancy_threshold: Optional[float] = None
+    alpha_lookahead: int = 0
 
     # ---- what the renderer calls ----------------------------------------------------------
     def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:  # pragma: no cover
@@ -258,7 +255,8 @@ class SDFField(NeuralField):
     """Shared machinery of SDF backbones (VolSDF, NeuS).
 
     Geometry net: ``GeometricInitMLP`` on ``[x, encoding(x)]`` (config
-    ``radius``: initial sphere radius in world units, default ``0.5 * bound``;
+    ``radius``: initial sphere radius in world units, default 0.8 (object scenes fill the unit sphere;
+    null: ``0.5 * bound``); ``n_layers``: hidden layers of the geometry net, default 1;
     ``refine_init``: least-squares refinement of the sphere init, default True).
     Colour net: MLP on ``[geometry features, normal, SH(d)]`` with sigmoid output.
     ``forward`` also returns ``gradient`` = d sdf / dx [N,3]. ``grad_type``
@@ -267,8 +265,8 @@ class SDFField(NeuralField):
     (``create_graph``) only if grad was enabled by the caller (training: eikonal
     term and normal-dependent colour), so no-grad rendering stays cheap;
     "finite_difference" = tetrahedron differences with step ``fd_eps`` (default
-    1e-3 * bound), ~4x faster to train with the grid encoding because
-    ``grid_sample`` has no fast double backward on CPU. "auto" picks
+    1e-3 * bound), much faster to train with the grid encoding because
+    ``grid_sample`` has no fast double backward on CPU (BENCHMARKS.md). "auto" picks
     finite_difference for the grid encoding, analytic otherwise.
 
     Speed knobs: ``color_normal`` (default True: the colour net sees the
@@ -277,7 +275,7 @@ class SDFField(NeuralField):
     that does not read the gradient (VolSDF; NeuS with ``alpha_mode=sections``)
     the training forward evaluates the geometry once per sample and the
     (4-tap) gradient only on this random fraction of samples, for the eikonal
-    term: ~2.5x cheaper per sample with the grid encoding. No-grad rendering
+    term: several times cheaper per sample with the grid encoding. No-grad rendering
     computes every gradient (normal maps) unless the caller passes
     ``with_normal=False`` and neither colour nor alpha reads the gradient: then
     the geometry net runs once per sample (1 instead of 4 taps), e.g. in the
@@ -296,11 +294,11 @@ class SDFField(NeuralField):
     alpha_needs_gradient: bool = False
 
     def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
-                 radius: Optional[Annotated[PositiveFloat, Limits(le=100.0)]] = None, refine_init: bool = True,
+                 radius: Optional[Annotated[PositiveFloat, Limits(le=100.0)]] = 0.8, refine_init: bool = True,
                  grad_type: Literal["auto", "analytic", "finite_difference"] = "auto",
                  fd_eps: Optional[Annotated[PositiveFloat, Limits(le=1.0)]] = None,
-                 color_normal: bool = True, grad_samples: Fraction = 1.0, **kw: Any) -> None:
-        super().__init__(encoding_cfg, bound, **kw)
+                 color_normal: bool = True, grad_samples: Fraction = 1.0, n_layers: Depth = 1, **kw: Any) -> None:
+        super().__init__(encoding_cfg, bound, n_layers=n_layers, **kw)
         if grad_type not in ("auto", "analytic", "finite_difference"):
             raise ConfigError(f"backbone.grad_type={grad_type!r}; use 'auto', 'analytic' or 'finite_difference'.")
         if not 0.0 < float(grad_samples) <= 1.0:

@@ -52,7 +52,11 @@ class FrequencyEncoding(Encoding):
 
     Config: ``n_freqs`` (int, default 10; 4 is typical for directions),
     ``include_input`` (bool, default True). Output dims ``3*(include_input + 2*n_freqs)``.
+    ``mlp_lr_scale`` defaults to 0.33: at the grid's MLP rate (3e-3) a NeuS on 10 frequencies lost
+    its surface and never recovered (BENCHMARKS.md, trade-off); at 1e-3 it trains.
     """
+
+    mlp_lr_scale: float = 0.33
 
     def __init__(self, bound: float = 1.0, n_freqs: Annotated[Int, Limits(ge=0, le=24)] = 10,
                  include_input: bool = True, in_dim: int = 3) -> None:
@@ -94,7 +98,7 @@ class TensorVMGridEncoding(Encoding):
     (TensoRF's "basis matrix") to ``out_features``.
 
     Config: ``resolution`` (int or list of ints for multi-resolution, default
-    128), ``n_components`` (int, default 16), ``out_features`` (int or None =
+    128), ``n_components`` (int, default 8), ``out_features`` (int or None =
     no projection, default 32), ``init_std`` (default 0.1; planes/lines are
     N(0, init_std) so products start small but non-zero), ``tv_weight``
     (default 0.0: total-variation regularizer returned by ``regularizers()``).
@@ -104,7 +108,7 @@ class TensorVMGridEncoding(Encoding):
         self,
         bound: float = 1.0,
         resolution: Union[GridSide, Annotated[list[GridSide], Limits(min_length=1, max_length=16)]] = 128,
-        n_components: Annotated[Int, Limits(ge=1, le=256)] = 16,
+        n_components: Annotated[Int, Limits(ge=1, le=256)] = 8,
         out_features: Optional[Annotated[Int, Limits(ge=1, le=4096)]] = 32,
         init_std: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
         tv_weight: Annotated[Float, Limits(ge=0.0, le=1e6)] = 0.0,
@@ -224,7 +228,7 @@ def build_encoding(cfg: dict | None, bound: float = 1.0) -> Encoding:
     if name is None:
         raise ConfigError("encoding config has no 'name'; set encoding.name to one of: " + ", ".join(registry.names("encoding")))
     cls = registry.get("encoding", str(name))
-    scale = cfg.pop("mlp_lr_scale", 1.0)
+    scale = cfg.pop("mlp_lr_scale", cls.mlp_lr_scale)
     if not (isinstance(scale, (int, float)) and scale > 0):
         raise ConfigError(f"encoding.mlp_lr_scale={scale!r}: use a positive number (1.0 = the configured MLP rate).")
     try:

@@ -23,30 +23,31 @@ class NeuSField(SDFField):
 
     Config (besides the common ``Field`` keys and ``radius``): ``init_variance``
     (default 0.3; ``inv_s = exp(10 * variance)`` starts at ~20), ``inv_s_max``
-    (default 1e5, clamp of inv_s), ``anneal_steps`` (default 0 = no cos
+    (default 1e5, clamp of inv_s), ``anneal_steps`` (default 500; 0 = no cos
     annealing; otherwise the cos-anneal ratio goes linearly 0 -> 1 over the
     first ``anneal_steps`` steps, driven by ``update_step``), ``alpha_mode``
     ("gradient", default: the reference code's mid-point estimate from
     ``dot(d, grad sdf)``; "sections": NeuS Eq. 13 on the SDF at consecutive
     samples, which needs no gradient, so ``grad_samples < 1`` can skip most of
     the gradient cost; cos-annealing does not apply), ``variance_lr_scale``
-    (default 1.0: the stored parameter is ``variance / variance_lr_scale``, so
+    (default 0.2: the stored parameter is ``variance / variance_lr_scale``, so
     Adam moves the variance that many times slower or faster than the other
-    MLP parameters; NeuS trains it at the network rate 5e-4, so with a larger
-    ``lr_mlp`` use e.g. 0.2 to keep inv_s from sharpening before the shape forms).
+    MLP parameters; NeuS trains it at the network rate 5e-4, and at the grid's larger
+    ``lr_mlp`` 0.2 keeps inv_s from sharpening before the shape forms; 1.0: the network rate).
     """
 
     def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
                  init_variance: Annotated[Float, Limits(ge=-10.0, le=10.0)] = 0.3,
                  inv_s_max: Annotated[Float, Limits(gt=1.0, le=1e9)] = 1e5,
-                 anneal_steps: Annotated[Int, Limits(ge=0, le=10**9)] = 0,
+                 anneal_steps: Annotated[Int, Limits(ge=0, le=10**9)] = 500,
                  alpha_mode: Literal["gradient", "sections"] = "gradient",
-                 variance_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = 1.0, **kw: Any) -> None:
+                 variance_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = 0.2, **kw: Any) -> None:
         if alpha_mode not in ("gradient", "sections"):
             raise ConfigError(f"backbone neus: alpha_mode={alpha_mode!r}; use 'gradient' or 'sections'.")
         self.alpha_needs_gradient = alpha_mode == "gradient"
         super().__init__(encoding_cfg, bound, **kw)
         self.alpha_mode = alpha_mode
+        self.alpha_lookahead = 1 if alpha_mode == "sections" else 0  # Eq. 13 reads the next sample's SDF
         self.variance_lr_scale = float(variance_lr_scale)
         self.variance = nn.Parameter(torch.tensor(float(init_variance) / self.variance_lr_scale))
         self.inv_s_max = float(inv_s_max)

@@ -75,20 +75,44 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("score", torch.zeros(n))
         self.register_buffer("occupied", torch.ones(n, dtype=torch.bool))
         self._warned_empty = False
+        self._padded_cache: Optional[Tensor] = None
+        self._padded_version: Optional[tuple] = None
 
-    def _cell_index(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        """Flat cell index [N] (clamped) and inside-box mask [N] of points x [N,3]."""
-        u = (x.float() + self.bound) / (2.0 * self.bound) * self.resolution
-        inside = ((u >= 0) & (u <= self.resolution)).all(-1)
-        ijk = u.floor().long().clamp(0, self.resolution - 1)
-        r = self.resolution
-        return (ijk[:, 0] * r + ijk[:, 1]) * r + ijk[:, 2], inside
+    def _padded(self) -> Tensor:
+        """``occupied`` with a border of empty cells, flat [(r+2)^3]: a point outside the box falls in the
+        border, so a lookup needs no inside test. Rebuilt when ``occupied`` changes (update, load)."""
+        version = (self.occupied.data_ptr(), self.occupied._version, self.occupied.device)
+        if self._padded_version != version:
+            r = self.resolution
+            pad = torch.zeros(r + 2, r + 2, r + 2, dtype=torch.bool, device=self.occupied.device)
+            pad[1:-1, 1:-1, 1:-1] = self.occupied.view(r, r, r)
+            self._padded_cache, self._padded_version = pad.reshape(-1), version
+        return self._padded_cache
+
+    def _lookup(self, u: Tensor) -> Tensor:
+        """Occupancy at grid coordinates ``u`` [...,3] (cell units, offset by the border): bool [...]."""
+        r2 = float(self.resolution + 2)
+        u = u.clamp_(0.0, r2 - 0.5).floor_()
+        if r2**3 <= 2**24:  # the flat index is exact in float32: one matmul instead of integer arithmetic
+            flat = (u @ torch.tensor([r2 * r2, r2, 1.0], device=u.device)).long()
+        else:
+            ijk = u.long()
+            flat = (ijk[..., 0] * int(r2) + ijk[..., 1]) * int(r2) + ijk[..., 2]
+        return self._padded()[flat]
 
     @torch.no_grad()
     def query(self, x: Tensor) -> Tensor:
         """Occupancy (nearest cell) of points x [N,3] -> bool [N]; points outside the box are empty."""
-        idx, inside = self._cell_index(x)
-        return self.occupied[idx] & inside
+        scale = self.resolution / (2.0 * self.bound)
+        return self._lookup((x.float() + self.bound) * scale + 1.0)
+
+    @torch.no_grad()
+    def query_rays(self, rays_o: Tensor, rays_d: Tensor, t: Tensor) -> Tensor:
+        """Occupancy at ``rays_o + t rays_d`` for ray parameters ``t`` [R,M] -> bool [R,M] (as :meth:`query`,
+        without materialising the points in world units)."""
+        scale = self.resolution / (2.0 * self.bound)
+        u0 = (rays_o.float() + self.bound) * scale + 1.0
+        return self._lookup(torch.addcmul(u0[:, None, :], (rays_d.float() * scale)[:, None, :], t.float()[..., None]))
 
     def _cell_points(self, idx: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
         r = self.resolution

@@ -8,6 +8,7 @@ midpoints, converts to opacities with ``field.alpha`` and composites:
 
 from __future__ import annotations
 
+import math
 from typing import Any, Optional, Sequence
 
 import torch
@@ -18,7 +19,7 @@ from nerfart_plugin.errors import DataError
 from nerfart_plugin.fields.base import Field
 from nerfart_plugin.fields.occupancy import OccupancyGrid
 from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples
-from nerfart_plugin.rendering.volume import weights_from_alpha
+from nerfart_plugin.rendering.volume import ALPHA_T_EPS, exclusive_cumsum, weights_from_alpha
 
 __all__ = ["VolumeRenderer"]
 
@@ -45,6 +46,12 @@ class VolumeRenderer(nn.Module):
             sections and render the background).
         compact: query the field only at non-empty sections (``delta > 0``);
             empty ones are transparent anyway, so results are unchanged.
+        stop_transmittance: no-grad renders (:meth:`render_chunked`, :meth:`march`) stop marching a
+            ray once its transmittance falls below this, so each pixel (and opacity) changes by less
+            than it (nerfacc's early ray termination); 0 marches every sample.
+        march_block: samples per ray evaluated between two transmittance checks of :meth:`march`.
+        view_samples: K of full views rendered without grad (:meth:`render_chunked`: validation,
+            evaluation, videos); None: ``num_samples``.
     """
 
     def __init__(
@@ -57,9 +64,15 @@ class VolumeRenderer(nn.Module):
         num_coarse: Optional[int] = None,
         clip_to_bound: bool = True,
         compact: bool = True,
+        stop_transmittance: float = 1e-4,
+        march_block: int = 4,
+        view_samples: Optional[int] = None,
     ) -> None:
         super().__init__()
         self.compact = bool(compact)
+        self.stop_transmittance = float(stop_transmittance)
+        self.march_block = max(1, int(march_block))
+        self.view_samples = int(view_samples) if view_samples else None
         self.field = field
         self.num_samples = int(num_samples)
         self.background = background
@@ -100,14 +113,16 @@ class VolumeRenderer(nn.Module):
         far = torch.maximum(far, near)
         return near, far
 
-    def sample(self, batch: dict[str, Any], perturb: bool, generator: Optional[torch.Generator] = None) -> Tensor:
-        """``t_samples`` [R,K,2] (section start/end in ray parameter), no grad."""
+    def sample(self, batch: dict[str, Any], perturb: bool, generator: Optional[torch.Generator] = None,
+               num_samples: Optional[int] = None) -> Tensor:
+        """``t_samples`` [R,K,2] (section start/end in ray parameter), no grad; K = ``num_samples`` (default
+        :attr:`num_samples`)."""
         rays_o, rays_d = batch["rays_o"], batch["rays_d"]
         near, far = self.ray_bounds(rays_o, rays_d, batch["near"], batch["far"])
+        k = int(num_samples or self.num_samples)
         if self.occupancy is not None:
-            return occupancy_samples(rays_o, rays_d, near, far, self.occupancy, self.num_samples,
-                                     self.num_coarse, perturb, generator)
-        return stratified_samples(near, far, self.num_samples, perturb, generator)
+            return occupancy_samples(rays_o, rays_d, near, far, self.occupancy, k, self.num_coarse, perturb, generator)
+        return stratified_samples(near, far, k, perturb, generator)
 
     def _background(self, batch: dict[str, Any], dirs: Tensor) -> Optional[Tensor]:
         if "bg_color" in batch and batch["bg_color"] is not None:
@@ -211,9 +226,76 @@ class VolumeRenderer(nn.Module):
         return full, sub
 
     @torch.no_grad()
+    def march(self, batch: dict[str, Any], perturb: bool = False, t_samples: Optional[Tensor] = None,
+              generator: Optional[torch.Generator] = None, with_normals: bool = True,
+              num_samples: Optional[int] = None) -> dict[str, Tensor]:
+        """No-grad render with early ray termination: the same image as :meth:`forward`, cheaper.
+
+        The K sections of each ray are evaluated ``march_block`` at a time, front to back, and
+        only on rays still visible: a ray leaves once its transmittance is below
+        ``stop_transmittance`` (so its colour, opacity and depth weights change by less than
+        that), and rays with no non-empty section (they miss the occupancy grid) are never
+        evaluated. A field whose opacity reads following samples (``Field.alpha_lookahead``,
+        e.g. NeuS' section estimate) gets them evaluated with each block.
+
+        Returns ``rgb`` [R,3], ``depth`` [R], ``opacity`` [R] (``normal`` [R,3] for SDF fields
+        unless ``with_normals=False``) and ``t_samples`` [R,K,2] in which the sections no longer
+        needed (behind the stop, beyond the lookahead) have zero length: passed back to
+        :meth:`forward` (the two-pass backprop of Section 4.4) they render the same pixels
+        without evaluating those sections. ``samples_evaluated`` is a 0-dim count. ``num_samples``: K
+        when sampling here (default :attr:`num_samples`).
+        """
+        if t_samples is None:
+            t_samples = self.sample(batch, perturb, generator, num_samples)
+        if self.stop_transmittance <= 0:
+            out = self.forward(batch, t_samples=t_samples, with_normals=with_normals)
+            n = int((out["deltas"] > 0).sum())
+            keep = ("rgb", "depth", "opacity", "normal", "t_samples")
+            return {**{k: out[k] for k in keep if k in out}, "samples_evaluated": torch.tensor(n)}
+        rays_o, rays_d = batch["rays_o"].float(), batch["rays_d"].float()
+        R, K = t_samples.shape[:2]
+        t_start, t_end = t_samples[..., 0], t_samples[..., 1]
+        t = 0.5 * (t_start + t_end)
+        d_norm = rays_d.norm(dim=-1, keepdim=True)
+        deltas = (t_end - t_start).clamp_min(0.0) * d_norm
+        dirs = rays_d / d_norm.clamp_min(1e-12)
+        look = int(self.field.alpha_lookahead)
+        acc = _MarchState(R, rays_o.device)
+        active = (deltas > 0).any(-1)
+        stop_at = torch.full((R,), K, dtype=torch.long, device=rays_o.device)
+        log_stop = math.log(self.stop_transmittance)
+        for b0 in range(0, K, self.march_block):
+            idx = active.nonzero()[:, 0]
+            if idx.numel() == 0:
+                break
+            b1 = min(K, b0 + self.march_block)
+            w1 = min(K, b1 + look)
+            dl, tt = deltas[idx, b0:w1], t[idx, b0:w1]
+            pts = rays_o[idx, None, :] + rays_d[idx, None, :] * tt[..., None]
+            dk = dirs[idx, None, :].expand(-1, w1 - b0, 3)
+            out, _ = self._query_field(pts.reshape(-1, 3), dk.reshape(-1, 3), dl.reshape(-1) > 0, with_normals)
+            alpha = self.field.alpha(out, dl, dk).float()
+            alpha = torch.where(dl > 0, alpha, torch.zeros_like(alpha))[:, : b1 - b0]
+            acc.add(idx, alpha, tt[:, : b1 - b0], out, w1 - b0)
+            done = idx[acc.log_t[idx] < log_stop]
+            stop_at[done] = b1
+            active[done] = False
+        if acc.evaluated == 0:  # every ray missed: one probe sample tells which outputs the field gives
+            probe = self.field.query(rays_o[:1], dirs[:1], with_normal=with_normals)
+            if "normal" in probe:
+                acc.normal = torch.zeros_like(acc.rgb)
+        collapse = torch.arange(K, device=t.device)[None, :] >= (stop_at + look)[:, None]
+        kept = torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
+        result = acc.finish(self._background(batch, dirs), t_start[:, 0], t_end[:, -1])
+        result["t_samples"] = kept
+        result["samples_evaluated"] = torch.tensor(acc.evaluated)
+        return result
+
+    @torch.no_grad()
     def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False,
                        with_normals: bool = True) -> dict[str, Tensor]:
-        """Render a large ray batch (e.g. a full view) in chunks without grad.
+        """Render a large ray batch (e.g. a full view) in chunks without grad (:meth:`march`) with
+        :attr:`view_samples` samples per ray.
 
         Returns ``rgb`` [R,3], ``depth`` [R], ``opacity`` [R] (and ``normal``
         [R,3] for SDF fields unless ``with_normals=False``), concatenated over chunks; ints ``H``/``W`` in the
@@ -225,7 +307,7 @@ class VolumeRenderer(nn.Module):
         for s in range(0, R, int(chunk)):
             sub = {k: (v[s : s + chunk] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == R else v)
                    for k, v in batch.items()}
-            res = self.forward(sub, perturb=perturb, with_normals=with_normals)
+            res = self.march(sub, perturb=perturb, with_normals=with_normals, num_samples=self.view_samples)
             for k in keys:
                 if k in res:
                     parts.setdefault(k, []).append(res[k])
@@ -234,3 +316,41 @@ class VolumeRenderer(nn.Module):
             if k in batch:
                 merged[k] = batch[k]
         return merged
+
+
+class _MarchState:
+    """Per-ray sums of :meth:`VolumeRenderer.march`: log transmittance, colour, depth, opacity, normal."""
+
+    def __init__(self, n: int, device: torch.device) -> None:
+        self.log_t = torch.zeros(n, device=device)
+        self.rgb = torch.zeros(n, 3, device=device)
+        self.depth = torch.zeros(n, device=device)
+        self.opacity = torch.zeros(n, device=device)
+        self.normal: Optional[Tensor] = None
+        self.evaluated = 0
+
+    def add(self, idx: Tensor, alpha: Tensor, t: Tensor, out: dict[str, Tensor], width: int) -> None:
+        """Composite one block: ``alpha`` [n,B] and midpoints ``t`` [n,B] of rays ``idx`` [n]; ``out``
+        the field's output over [n, width] samples (the block plus its lookahead)."""
+        n, B = alpha.shape
+        log1m = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
+        w = torch.exp(self.log_t[idx, None] + exclusive_cumsum(log1m)) * alpha
+        self.rgb[idx] += (w[..., None] * out["rgb"].reshape(n, width, 3)[:, :B].float()).sum(1)
+        self.depth[idx] += (w * t).sum(-1)
+        self.opacity[idx] += w.sum(-1)
+        if "normal" in out:
+            if self.normal is None:
+                self.normal = torch.zeros_like(self.rgb)
+            self.normal[idx] += (w[..., None] * out["normal"].reshape(n, width, 3)[:, :B].float()).sum(1)
+        self.log_t[idx] += log1m.sum(-1)
+        self.evaluated += int(n * width)
+
+    def finish(self, bg: Optional[Tensor], t_first: Tensor, t_last: Tensor) -> dict[str, Tensor]:
+        rgb = self.rgb
+        if bg is not None:
+            rgb = rgb + (1.0 - self.opacity).clamp_min(0.0)[..., None] * bg
+        depth = self.depth / self.opacity.clamp_min(1e-10)
+        result = {"rgb": rgb, "depth": torch.minimum(torch.maximum(depth, t_first), t_last), "opacity": self.opacity}
+        if self.normal is not None:
+            result["normal"] = self.normal
+        return result

@@ -143,8 +143,7 @@ def occupancy_samples(
     M = int(num_coarse)
     coarse = stratified_edges(near, far, M, perturb=False)  # [R,M+1]
     mids = 0.5 * (coarse[:, :-1] + coarse[:, 1:])
-    pts = rays_o.float()[:, None, :] + rays_d.float()[:, None, :] * mids[..., None]
-    occ = occupancy.query(pts.reshape(-1, 3)).reshape(R, M).float()
+    occ = occupancy.query_rays(rays_o, rays_d, mids).float()
     if dilate > 0:
         occ = torch.nn.functional.max_pool1d(occ[:, None], 2 * dilate + 1, stride=1, padding=dilate)[:, 0]
     widths = coarse[:, 1:] - coarse[:, :-1]

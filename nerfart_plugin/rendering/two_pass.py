@@ -38,13 +38,17 @@ def slice_rays(batch: dict[str, Any], idx: slice, n: int) -> dict[str, Any]:
 def render_fixed_samples(renderer: VolumeRenderer, batch: dict[str, Any], chunk: int, perturb: bool = True,
                          generator: Optional[torch.Generator] = None) -> dict[str, Tensor]:
     """Pass 1: render all rays of ``batch`` without grad; returns ``rgb`` [R,3], ``depth`` [R],
-    ``opacity`` [R] and the ``t_samples`` [R,K,2] to reuse in pass 2."""
+    ``opacity`` [R] and the ``t_samples`` [R,K,2] to reuse in pass 2.
+
+    Rays are marched with early termination (:meth:`VolumeRenderer.march`): the sections behind a
+    ray's stop get zero length in ``t_samples``, so pass 2 re-renders the same pixels without
+    evaluating them (their weights, and so their gradients, are below ``stop_transmittance``)."""
     n = batch["rays_o"].shape[0]
     keys = ("rgb", "depth", "opacity", "t_samples")
     parts: dict[str, list[Tensor]] = {k: [] for k in keys}
     for s in range(0, n, chunk):
-        out = renderer(slice_rays(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator,
-                       with_normals=False)  # colour only: SDF fields skip the gradient taps
+        out = renderer.march(slice_rays(batch, slice(s, s + chunk), n), perturb=perturb, generator=generator,
+                             with_normals=False)  # colour only: SDF fields skip the gradient taps
         for k in keys:
             parts[k].append(out[k])
     return {k: torch.cat(v, 0) for k, v in parts.items()}

@@ -32,7 +32,8 @@ def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderCon
         occupancy = OccupancyGrid(resolution=setup.occupancy_resolution, bound=setup.bound, threshold=occ.threshold,
                                   update_every=occ.update_every, warmup_steps=occ.warmup_steps)
     return VolumeRenderer(field, num_samples=setup.num_samples, background=background, occupancy=occupancy,
-                          background_color=setup.background_color)
+                          background_color=setup.background_color, stop_transmittance=rc.stop_transmittance,
+                          view_samples=rc.view_samples)
 
 
 def param_groups(renderer: VolumeRenderer, lr_grid: float, lr_mlp: float, geometry: bool = True) -> list[dict]:

@@ -144,6 +144,8 @@ class StylizationSystem(RenderSystem):
         # stylization stage can afford fewer samples per ray (stylize.num_samples; null: as rendered).
         if self.cfg.num_samples:
             self.renderer.num_samples = source.num_samples = self.cfg.num_samples
+        # its views (source images, held-out renders, video) at the samples it stylizes with
+        self.renderer.view_samples = source.view_samples = self.cfg.num_samples
         # Frozen helpers live outside the module tree: not trained, not checkpointed.
         self._frozen = {"source": source, "guidance": guidance, "perceptual": perceptual}
         self.views = views
