@@ -24,7 +24,6 @@ import json
 import logging
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
@@ -32,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks import common  # noqa: E402
+from benchmarks.paper_resolution import paper_job  # noqa: E402
 
 log = logging.getLogger("bench.gpu")
 NAME = "gpu"
@@ -40,31 +40,10 @@ TARGET_JOB_S, TARGET_MEM_GIB = 300.0, 4.0
 
 
 def timed_run(overrides: list[str]) -> tuple[dict[str, Any], float, float]:
-    """(results, wall seconds, peak GPU GiB) of one pipeline run."""
-    import torch
+    """(results, wall seconds, peak GPU GiB) of one pipeline run on CUDA."""
+    from benchmarks.paper_resolution import _timed_run
 
-    from nerfart_plugin.pipeline import run
-
-    torch.cuda.synchronize()
-    torch.cuda.reset_peak_memory_stats()
-    t0 = time.perf_counter()
-    res = run(common.compose(overrides))
-    torch.cuda.synchronize()
-    return res, time.perf_counter() - t0, torch.cuda.max_memory_allocated() / 2**30
-
-
-def paper_job(data_root: Path, out: Path, quick: bool) -> dict[str, Any]:
-    base = ["data=h3ds", f"data.path={data_root / 'fangzhou_nature'}", "preset=paper_res", "guidance=imagenet",
-            f"prompt={json.dumps(PROMPT)}", "device=cuda", f"output_root={out}", "export.texture=false"]
-    if quick:
-        base += ["reconstruct.steps=200", "stylize.epochs=1", "stylize.video_frames=2", "export.resolution=64"]
-    rec, rec_s, rec_mem = timed_run([*base, "stage=reconstruct"])
-    sty, sty_s, sty_mem = timed_run([*base, "stage=stylize"])
-    metrics = json.loads((Path(sty["stylization"]["dir"]) / "metrics.json").read_text())
-    judge = metrics.get("judge") or {}
-    return {"reconstruct_s": rec_s, "stylize_s": sty_s, "job_s": rec_s + sty_s, "psnr": rec["reconstruction"].get("psnr"),
-            "steps": metrics.get("steps"), "top5_source": judge.get("source", {}).get("top5_rate"),
-            "top5": judge.get("stylized", {}).get("top5_rate"), "peak_gib": max(rec_mem, sty_mem)}
+    return _timed_run(overrides, "cuda")
 
 
 def memory_512(out: Path, quick: bool) -> dict[str, Any]:
@@ -121,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     else:
         out = args.out_root or Path(tempfile.mkdtemp(prefix="nerfart_gpu_"))
         raw.update(device=torch.cuda.get_device_name(), torch=torch.__version__, cuda_version=torch.version.cuda)
-        raw["paper_job"] = paper_job((args.data_root or common.shared_data()).resolve(), out, args.quick)
+        raw["paper_job"] = paper_job((args.data_root or common.shared_data()).resolve(), out, "cuda", args.quick,
+                                     prompt=PROMPT)
         log.info("paper-resolution job: %s", raw["paper_job"])
         raw["memory_512"] = memory_512(out, args.quick)
         log.info("512x512 stylization: %s", raw["memory_512"])

@@ -93,7 +93,7 @@ def measure(scene: Any, state: dict, samples: list[int], views: int, reps: int) 
         return imgs, evaluated / rays
 
     def timed(k: int, mode: str) -> float:
-        r.num_samples = k
+        r.num_samples = r.view_samples = k
         r.stop_transmittance = stop if mode == "march" else 0.0
         out = []
         for _ in range(reps):
@@ -120,7 +120,7 @@ def measure(scene: Any, state: dict, samples: list[int], views: int, reps: int) 
             "encoding": scene.cfg.encoding["name"]}
 
 
-def report(results: dict[str, dict], info: dict[str, Any], cmd: str, quick: bool) -> str:
+def report(results: dict[str, dict], info: dict[str, Any], cmd: str, quick: bool, notes: list[str]) -> str:
     body = [
         "No-grad render of held-out views of the trained reconstruction (the pipeline's default: "
         "VolSDF + grid) at the capture's resolution, colour only (`with_normals=False`, as the stylization's "
@@ -147,6 +147,7 @@ def report(results: dict[str, dict], info: dict[str, Any], cmd: str, quick: bool
         body += common.md_table(["mode", "samples/ray", "s / view", f"PSNR vs K={REFERENCE_SAMPLES} (dB)",
                                  "field evaluations / ray", "speed-up vs dense", "meets goal"], rows, "lrrrrrc")
         body.append("")
+    body += [f"{n}  " for n in notes]
     return common.section(NAME, "Rendering: no-grad view time versus fidelity at the paper's resolution", cmd,
                           info, body, quick)
 
@@ -161,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "stylization_quality",
                    help="output_root of the reconstructions (shared with stylization_quality.py)")
     p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides")
+    p.add_argument("--note", nargs="*", default=[], help="lines added to the section (e.g. a figure of an "
+                   "earlier version measured in the same session)")
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
@@ -172,7 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         scene, state = trained_scene(ov)
         results[name] = measure(scene, state, args.samples, 1 if args.quick else args.views,
                                 1 if args.quick else args.reps)
-    common.finish(args, NAME, report(results, info, common.command("render_speed.py", argv), args.quick))
+    common.finish(args, NAME, report(results, info, common.command("render_speed.py", argv), args.quick,
+                                           args.note))
     return 0
 
 

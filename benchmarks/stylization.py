@@ -157,15 +157,15 @@ def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[in
 
 
 def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, perceptual=None,
-              score: bool = False, clip_overrides: Optional[dict] = None) -> dict[str, Any]:
-    """``steps`` stylization steps with the composed config; per-step timings (+ CLIP score)."""
+              score: bool = False, clip_overrides: Optional[dict] = None, prompt: str = PROMPT) -> dict[str, Any]:
+    """``steps`` stylization steps toward ``prompt`` with the composed config; per-step timings (+ CLIP score)."""
     import lightning as L
 
     from nerfart_plugin.evaluation import clip_scores
     from nerfart_plugin.factories import build_style, build_stylization_system
     from nerfart_plugin.fit import train_steps
 
-    c = common.compose(["stage=stylize", f"+prompt={PROMPT}", *ctx.base, *overrides])
+    c = common.compose(["stage=stylize", f"+prompt={json.dumps(prompt)}", *ctx.base, *overrides])
     L.seed_everything(int(c["seed"]), verbose=False)
     if clip_overrides and c["guidance"]["name"] == "clip":
         c["guidance"]["clip"]["model_overrides"] = clip_overrides
