@@ -170,8 +170,9 @@ class StylizeConfig(Section):
     lr: Float = Setting(0.01, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
     lr_mlp: Float = Setting(0.0025, gt=0.0, le=10.0, description="Adam rate of the MLPs")
     resolution: Union[Literal["auto"], Annotated[Int, Field(ge=8, le=4096)]] = Setting(
-        128, description="long side (pixels) of the view the CLIP losses see; auto: the loaded "
-        "images' own (the data resolution policy)", allowed="auto or an integer in [8, 4096]")
+        "auto", description="long side (pixels) of the view the CLIP losses see; auto: the loaded "
+        "images' own (the data resolution policy: 270x480 selfies, 256x256 H3DS head, as the paper)",
+        allowed="auto or an integer in [8, 4096]")
     patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)")
     num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing; null: "
                                          "render.num_samples")

@@ -29,7 +29,7 @@ from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_
 from nerfart_plugin.fit import FitResult, fit_stage, save_final
 from nerfart_plugin.runs import RunFolder, config_hash, slug
 from nerfart_plugin.schema import component_result_settings, result_settings
-from nerfart_plugin.utils.io import atomic_path, atomic_write_json
+from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -398,10 +398,16 @@ class RenderStage:
 
 
 def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -> tuple[Path, str]:
-    """The checkpoint a stylization starts from and what identifies it in the stylization key: an explicit
-    ``source_checkpoint`` (by its resolved path), else the cached reconstruction of these settings."""
+    """The checkpoint a stylization starts from and what identifies it in the stylization key: the cached
+    reconstruction of these settings (its key covers the scene, data and render settings), or an explicit
+    ``source_checkpoint``: its content, with the scene's content and the data and render settings, which
+    the stylization uses too (a file that does not exist keeps its path; reading it fails clearly later)."""
     src = scene.cfg.source_checkpoint
     if src:
-        return Path(src), str(Path(src).resolve())
+        path = Path(src)
+        c = scene.cfg
+        content = hash_files([path]) if path.is_file() else str(path.resolve())
+        return path, config_hash({"checkpoint": content, "scene": scene.scene.content_hash,
+                                  "data": component_result_settings("data", c.data), "render": result_settings(c.render)})
     assert recon is not None
     return recon.folder.final, recon.key

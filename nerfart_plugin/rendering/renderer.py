@@ -253,15 +253,26 @@ class VolumeRenderer(nn.Module):
             keep = ("rgb", "depth", "opacity", "normal", "t_samples")
             return {**{k: out[k] for k in keep if k in out}, "samples_evaluated": torch.tensor(n)}
         rays_o, rays_d = batch["rays_o"].float(), batch["rays_d"].float()
-        R, K = t_samples.shape[:2]
         t_start, t_end = t_samples[..., 0], t_samples[..., 1]
-        t = 0.5 * (t_start + t_end)
         d_norm = rays_d.norm(dim=-1, keepdim=True)
-        deltas = (t_end - t_start).clamp_min(0.0) * d_norm
         dirs = rays_d / d_norm.clamp_min(1e-12)
+        acc, stop_at = self._march_blocks(rays_o, rays_d, dirs, 0.5 * (t_start + t_end),
+                                          (t_end - t_start).clamp_min(0.0) * d_norm, with_normals)
+        look = int(self.field.alpha_lookahead)
+        collapse = torch.arange(t_samples.shape[1], device=t_start.device)[None, :] >= (stop_at + look)[:, None]
+        result = acc.finish(self._background(batch, dirs), t_start[:, 0], t_end[:, -1])
+        result["t_samples"] = torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
+        result["samples_evaluated"] = torch.tensor(acc.evaluated)
+        return result
+
+    def _march_blocks(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor,
+                      with_normals: bool) -> tuple["_MarchState", Tensor]:
+        """Composite sections ``t``/``deltas`` [R,K] front to back, ``march_block`` at a time, on the rays
+        still visible. Returns the sums and, per ray, the first section not evaluated [R] (K if none)."""
+        R, K = t.shape
         look = int(self.field.alpha_lookahead)
         acc = _MarchState(R, rays_o.device)
-        active = (deltas > 0).any(-1)
+        active = (deltas > 0).any(-1)  # rays that miss the occupancy grid are never evaluated
         stop_at = torch.full((R,), K, dtype=torch.long, device=rays_o.device)
         log_stop = math.log(self.stop_transmittance)
         for b0 in range(0, K, self.march_block):
@@ -269,7 +280,7 @@ class VolumeRenderer(nn.Module):
             if idx.numel() == 0:
                 break
             b1 = min(K, b0 + self.march_block)
-            w1 = min(K, b1 + look)
+            w1 = min(K, b1 + look)  # the block and the samples its opacities read
             dl, tt = deltas[idx, b0:w1], t[idx, b0:w1]
             pts = rays_o[idx, None, :] + rays_d[idx, None, :] * tt[..., None]
             dk = dirs[idx, None, :].expand(-1, w1 - b0, 3)
@@ -284,12 +295,7 @@ class VolumeRenderer(nn.Module):
             probe = self.field.query(rays_o[:1], dirs[:1], with_normal=with_normals)
             if "normal" in probe:
                 acc.normal = torch.zeros_like(acc.rgb)
-        collapse = torch.arange(K, device=t.device)[None, :] >= (stop_at + look)[:, None]
-        kept = torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
-        result = acc.finish(self._background(batch, dirs), t_start[:, 0], t_end[:, -1])
-        result["t_samples"] = kept
-        result["samples_evaluated"] = torch.tensor(acc.evaluated)
-        return result
+        return acc, stop_at
 
     @torch.no_grad()
     def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False,
