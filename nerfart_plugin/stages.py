@@ -95,10 +95,17 @@ def reconstruction_key(scene: SceneContext) -> str:
     """Hash of the scene's content and every setting that changes the reconstruction (the schema's
     ``changes_results`` fields of render / reconstruct / trainer, the component sections, the seed)."""
     c = scene.cfg
-    return config_hash({"scene": scene.scene.content_hash, "data": component_result_settings("data", c.data),
-                        "backbone": c.backbone, "encoding": c.encoding, "render": result_settings(c.render),
+    return config_hash({**scene_settings(scene), "backbone": c.backbone, "encoding": c.encoding,
                         "reconstruct": result_settings(c.reconstruct), "trainer": result_settings(c.trainer),
                         "seed": c.seed})
+
+
+def scene_settings(scene: SceneContext) -> dict[str, Any]:
+    """What identifies the photos and how they are rendered, in every key that depends on them: the scene's
+    content and the ``changes_results`` settings of data and render."""
+    c = scene.cfg
+    return {"scene": scene.scene.content_hash, "data": component_result_settings("data", c.data),
+            "render": result_settings(c.render)}
 
 
 class ReconstructStage(TrainingStage):
@@ -405,9 +412,7 @@ def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -
     src = scene.cfg.source_checkpoint
     if src:
         path = Path(src)
-        c = scene.cfg
         content = hash_files([path]) if path.is_file() else str(path.resolve())
-        return path, config_hash({"checkpoint": content, "scene": scene.scene.content_hash,
-                                  "data": component_result_settings("data", c.data), "render": result_settings(c.render)})
+        return path, config_hash({"checkpoint": content, **scene_settings(scene)})
     assert recon is not None
     return recon.folder.final, recon.key
