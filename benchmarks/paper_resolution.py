@@ -21,6 +21,7 @@ output root: wall time of each stage, held-out PSNR, the judge. Goal: <= 45 min 
     python benchmarks/paper_resolution.py
     python benchmarks/paper_resolution.py --skip-job                  # part 1 only
     python benchmarks/paper_resolution.py --quick
+    python benchmarks/paper_resolution.py --skip-steps --skip-job     # the section from the raw file only
 """
 
 from __future__ import annotations
@@ -126,6 +127,12 @@ def paper_job(data_root: Path, out: Path, device: str, quick: bool, prompt: str 
 
 
 # --------------------------------------------------------------------------- report
+def _measured_by(raw: dict[str, Any], part: str) -> list[str]:
+    """The line naming the run that measured ``part`` (parts may come from different runs of this script)."""
+    run = raw.get("measured_by", {}).get(part)
+    return [f"Measured by `{run['command']}` ({run['utc']}).", ""] if run else []
+
+
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
     f = common.fmt
     body = ["### Part 1: one stylization step at the paper's resolution versus its guidance floor", "",
@@ -139,6 +146,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
         rows.append([row["scene"], f"{row['width']}x{row['height']}", row["guide"], f(row["step"]), f(row["render"]),
                      f(row["losses"]), f(row["backprop"]), f(row["floor"]), f"**{f(row['ratio'])}**",
                      "yes" if row["ratio"] <= TARGET_RATIO else "no"])
+    body += _measured_by(raw, "steps")
     body += common.md_table(["scene", "view", "guide", "step (s)", "pass 1: render (s)", "losses + dL/dI (s)",
                              "pass 2: patch backprop (s)", "guidance floor (s)", "step / floor", "meets goal"], rows)
     job = raw.get("job")
@@ -147,6 +155,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
                  f"`preset=paper_res guidance=imagenet +prompt=\"{job['prompt']}\"` from an empty output root "
                  "(frames at 270x480, default reconstruction, then 4 epochs of the training views at 270x480), "
                  "each stage as a user waits for it (training, evaluation, video, meshes).", ""]
+        body += _measured_by(raw, "job")
         body += common.md_table(["measurement", "value", "goal", "met"], [
             ["whole job", f"{f(job['job_s'] / 60, '.1f')} min", f"<= {TARGET_JOB_S / 60:.0f} min",
              "yes" if job["job_s"] <= TARGET_JOB_S else "no"],
@@ -182,8 +191,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     shared = common.shared_data()
     raw_path = args.raw or common.raw_path(NAME, q)
     raw: dict[str, Any] = json.loads(raw_path.read_text()) if raw_path.is_file() else {}
+    cmd = common.command("paper_resolution.py", argv)
+    this_run = {"command": cmd, "utc": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     if not args.skip_steps:
         raw["steps"] = []
+        raw.setdefault("measured_by", {})["steps"] = this_run
         for scene in args.scenes:
             for guide in args.guides:
                 ov = [o.format(shared=shared) for o in SCENES[scene]]
@@ -194,9 +206,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     if not args.skip_job:
         job_root = args.job_root or Path(tempfile.mkdtemp(prefix="nerfart_paper_job_"))
         raw["job"] = paper_job(shared, job_root, args.device, q)
+        raw.setdefault("measured_by", {})["job"] = this_run
         log.info("paper-resolution job: %s", raw["job"])
         common.atomic_write_text(raw_path, json.dumps(raw, indent=1))
-    common.finish(args, NAME, report(raw, info, common.command("paper_resolution.py", argv), q))
+    common.finish(args, NAME, report(raw, info, cmd, q))
     return 0
 
 
