@@ -223,3 +223,23 @@ def test_encoding_mlp_lr_scale_sets_the_mlp_learning_rate() -> None:
     assert groups == {"grid": pytest.approx(1e-2), "mlp": pytest.approx(4e-3)}
     with pytest.raises(ConfigError, match="mlp_lr_scale"):
         build_field({"name": "neus"}, {**ENCODINGS["frequency"], "mlp_lr_scale": 0})
+
+
+def test_sharp_softplus_is_softplus_with_its_gradients_at_the_extremes() -> None:
+    """The geometry nets' fast softplus equals F.softplus(beta=100) from deep negative to huge inputs, in
+    float32 and bfloat16, and its first and second derivatives are softplus' (the analytic eikonal)."""
+    from nerfart_plugin.fields.base import SharpSoftplus
+
+    act = SharpSoftplus(100.0)
+    x = torch.cat([torch.linspace(-1.0, 1.0, 200001), torch.tensor([-1e30, -50.0, 0.0, 50.0, 1e30])])
+    ref = torch.nn.functional.softplus(x.double(), beta=100.0, threshold=30.0)
+    assert torch.isfinite(act(x)).all()
+    assert (act(x).double() - ref).abs().max() < 1e-7
+    assert (act(x.bfloat16()).double() - ref).abs().max() < 1e-2 * (1 + ref.abs()).max()
+    assert torch.isnan(act(torch.tensor([float("nan")]))).all()
+    xd = (0.03 * torch.randn(64, dtype=torch.float64)).requires_grad_(True)
+    assert torch.autograd.gradcheck(act, (xd,))
+    assert torch.autograd.gradgradcheck(act, (xd,))
+    xg = x.clone().requires_grad_(True)
+    (grad,) = torch.autograd.grad(act(xg).sum(), xg)
+    assert torch.allclose(grad.double(), torch.sigmoid(100.0 * x.double()), atol=1e-6)

@@ -8,7 +8,7 @@ import torch
 from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.guidance import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual
-from nerfart_plugin.systems.base import build_renderer
+from nerfart_plugin.systems.base import build_renderer, step_seed
 from nerfart_plugin.systems.reconstruction import RECONSTRUCTION_LOSSES, ReconstructionSystem
 from nerfart_plugin.systems.scene_setup import SceneSetup
 from nerfart_plugin.systems.stylization import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, StylizationSystem
@@ -30,9 +30,10 @@ def _rays(n: int = 64) -> dict:
             "rgb": torch.rand(n, 3, generator=g), "mask": (torch.rand(n, generator=g) > 0.5).float()}
 
 
-def _recon(tv_weight: float, **cfg) -> ReconstructionSystem:
+def _recon(tv_weight: float, rays: dict | None = None, **cfg) -> ReconstructionSystem:
     enc = {"name": "grid", "resolution": 8, "n_components": 2, "out_features": 8, "tv_weight": tv_weight}
-    return ReconstructionSystem({"batch_rays": 32, **cfg}, BACKBONE, enc, RENDER, _setup(), train_rays=_rays())
+    return ReconstructionSystem({"batch_rays": 32, **cfg}, BACKBONE, enc, RENDER, _setup(),
+                                train_rays=rays if rays is not None else _rays())
 
 
 def test_every_term_is_one_row_with_its_lambda():
@@ -74,6 +75,26 @@ def test_lambda_zero_and_missing_masks_skip_terms():
     assert no_masks.lambdas["mask"] == 0.0
     nerf = ReconstructionSystem({}, {"name": "nerf", "hidden_dim": 16}, enc, RENDER, _setup(), train_rays=_rays())
     assert nerf.reg_lambdas == {}  # a density field has no eikonal term
+
+
+def test_mask_ray_share_draws_the_subject_more_often():
+    """reconstruct.mask_ray_share of each batch comes from inside the mattes; 0 is the plain uniform draw;
+    each step's batch depends on (seed, step) only; scenes without mattes ignore the setting."""
+    rays = _rays(4000)
+    inside = rays["mask"].mean()  # ~0.5
+    share = _recon(0.0, rays, mask_ray_share=0.8, batch_rays=2000)
+    batch = share.sample_batch(3)
+    assert batch["mask"].mean() > 0.8 + 0.15 * inside  # 80% from inside plus the uniform part's share
+    assert torch.equal(batch["rays_d"], share.sample_batch(3)["rays_d"])
+    uniform = _recon(0.0, rays, mask_ray_share=0.0, batch_rays=2000)
+    g = torch.Generator().manual_seed(step_seed(0, 3))  # the plain uniform draw of earlier releases
+    assert torch.equal(uniform.sample_batch(3)["rays_d"], rays["rays_d"][torch.randint(0, 4000, (2000,), generator=g)])
+    assert abs(float(uniform.sample_batch(3)["mask"].mean()) - float(uniform.train_rays["mask"].mean())) < 0.1
+    enc = {"name": "grid", "resolution": 8, "n_components": 2}
+    unmasked = {k: v for k, v in _rays().items() if k != "mask"}
+    no_masks = ReconstructionSystem({"mask_ray_share": 0.9, "batch_rays": 32}, BACKBONE, enc, RENDER,
+                                    _setup(masks=False), train_rays=unmasked)
+    assert no_masks.foreground_rays() is None and no_masks.sample_batch(0)["rays_o"].shape == (32, 3)
 
 
 def _stylization(cfg: dict, tv_weight: float = 0.5) -> StylizationSystem:

@@ -22,7 +22,45 @@ from nerfart_plugin.config_types import Depth, Fraction, Limits, PositiveFloat, 
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.encodings import Encoding, build_encoding
 
-__all__ = ["Field", "NeuralField", "SDFField", "make_mlp", "GeometricInitMLP"]
+__all__ = ["Field", "NeuralField", "SDFField", "make_mlp", "GeometricInitMLP", "SharpSoftplus"]
+
+
+class _SharpSoftplusFn(torch.autograd.Function):
+    """``softplus_beta(x) = (relu(beta x) + log(1 + exp(-|beta x|))) / beta``; gradient ``sigmoid(beta x)``.
+
+    The same function as ``F.softplus(x, beta)`` (to 6e-8 absolute in float32: for ``|beta x| > 17``
+    ``log(1 + e)`` rounds to 0 where log1p would give ``e < 4e-8``), computed with ``log`` instead of
+    ``log1p``, whose CPU kernel is several times slower than ``exp`` and ``log``. Its backward is one
+    sigmoid instead of softplus_backward's exp, and is itself differentiable (the analytic eikonal
+    gradient takes the double backward), since it is written in differentiable ops of the saved input.
+    """
+
+    @staticmethod
+    def forward(ctx: Any, x: Tensor, beta: float) -> Tensor:  # type: ignore[override]
+        ctx.save_for_backward(x)
+        ctx.beta = beta
+        z = x * beta
+        return (torch.relu(z) + torch.log(1.0 + torch.exp(-z.abs()))) / beta
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None]:  # type: ignore[override]
+        (x,) = ctx.saved_tensors
+        return grad * torch.sigmoid(x * ctx.beta), None
+
+
+class SharpSoftplus(nn.Module):
+    """``nn.Softplus(beta)`` (no threshold: exact everywhere), about 2x faster forward and backward on a
+    CPU (:class:`_SharpSoftplusFn`). x [...] -> [...], same dtype."""
+
+    def __init__(self, beta: float = 100.0) -> None:
+        super().__init__()
+        self.beta = float(beta)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return _SharpSoftplusFn.apply(x, self.beta)
+
+    def extra_repr(self) -> str:
+        return f"beta={self.beta}"
 
 
 def make_mlp(in_dim: int, hidden_dim: int, out_dim: int, n_hidden_layers: int, act: type[nn.Module] = nn.ReLU) -> nn.Sequential:
@@ -60,7 +98,7 @@ class GeometricInitMLP(nn.Module):
         dims = [3 + extra_dim] + [hidden_dim] * max(1, n_hidden_layers)
         self.hidden = nn.ModuleList(nn.Linear(a, b) for a, b in zip(dims[:-1], dims[1:]))
         self.out = nn.Linear(dims[-1], 1 + feature_dim)
-        self.act = nn.Softplus(beta=100.0)
+        self.act = SharpSoftplus(beta=100.0)
         with torch.no_grad():
             for i, lin in enumerate(self.hidden):
                 nn.init.normal_(lin.weight, 0.0, math.sqrt(2.0) / math.sqrt(lin.out_features))

@@ -65,13 +65,28 @@ class ReconstructionSystem(RenderSystem):
 
     # ------------------------------------------------------------------ training
     def sample_batch(self, step: int) -> dict[str, torch.Tensor]:
-        """``reconstruct.batch_rays`` random training rays for ``step`` (a function of (seed, step) only)."""
+        """``reconstruct.batch_rays`` random training rays for ``step`` (a function of (seed, step) only):
+        ``reconstruct.mask_ray_share`` of them from inside the mattes (scenes with mattes), the rest
+        uniformly from all training pixels."""
         assert self.train_rays is not None, "ReconstructionSystem needs train_rays to train"
         # DDP: each rank draws its own rays (rank 0 draws what a single-device run draws)
         g = torch.Generator().manual_seed(step_seed(self.seed + 1_000_033 * self.global_rank, step))
         n = self.train_rays["rays_o"].shape[0]
-        idx = torch.randint(0, n, (self.cfg.batch_rays,), generator=g)
+        fg = self.foreground_rays()
+        k = int(round(self.cfg.mask_ray_share * self.cfg.batch_rays)) if fg is not None else 0
+        idx = torch.randint(0, n, (self.cfg.batch_rays - k,), generator=g)
+        if k:
+            idx = torch.cat([fg[torch.randint(0, fg.numel(), (k,), generator=g)], idx])
         return to_device({k: v[idx] for k, v in self.train_rays.items() if torch.is_tensor(v)}, self.device)
+
+    def foreground_rays(self) -> Optional[torch.Tensor]:
+        """Indices [F] of the training rays inside the mattes (mask > 0.5); None without mattes, when
+        none is inside, or with ``reconstruct.mask_ray_share=0``."""
+        if not hasattr(self, "_foreground"):
+            mask = self.train_rays.get("mask") if self.train_rays is not None else None
+            ids = (mask.reshape(-1) > 0.5).nonzero()[:, 0] if mask is not None and self.cfg.mask_ray_share > 0 else None
+            self._foreground = ids if ids is not None and ids.numel() > 0 else None
+        return self._foreground
 
     def losses(self, out: dict[str, Any], batch: dict[str, Any]) -> tuple[dict[str, torch.Tensor], dict[str, float]]:
         """The terms of this step with a non-zero weight, and the weights (table + field regularizers)."""
