@@ -91,7 +91,7 @@ def machine_info() -> dict[str, Any]:
 def machine_line(info: dict[str, Any]) -> str:
     la = info["loadavg"]
     gpu = f"GPU {info['cuda']}; " if info.get("cuda") else "CPU only; "
-    total = time.perf_counter() - info["t0"]
+    total = info["total_s"] if "total_s" in info else time.perf_counter() - info["t0"]  # total_s: a saved run
     pin = (f" — this run was pinned with `taskset` to CPU {','.join(map(str, info['pinned']))} of "
            f"{info['cpu_count']}, so timings are single-core" if info.get("pinned") else "")
     return (f"Machine: {info['nproc']} CPUs (nproc{pin}), {info['cpu']}, {info['ram_gib']:.0f} GiB RAM; {gpu}"

@@ -86,7 +86,32 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
     return {"guide": guide, "width": W, "height": H, "local_patches": k, "samples": r["num_samples"],
             "step": s["step_no_cache"], "render": s["render_nograd"], "losses": s["losses_and_image_grad"],
             "backprop": s["patch_backprop"], "floor": floor, "ratio": s["step_no_cache"] / floor,
-            "steps": len(r["timings"])}
+            "steps": len(r["timings"]), **precision_costs(g, r["perceptual"], guidance_passes, H, W, reps)}
+
+
+def precision_costs(guidance: Any, perceptual: Any, guidance_passes: Any, H: int, W: int, reps: int) -> dict[str, Any]:
+    """The guidance floor and the perceptual network's forward+backward at the view's size, in the precision
+    ``auto`` picks on this machine and in float32 (the floor's images batched in one pass), same run:
+    which arithmetic is faster on this CPU. Only for networks with a ``precision`` setting (CLIP, VGG16)."""
+    import torch
+
+    from benchmarks.stylization import fwd_bwd, timed
+
+    out: dict[str, Any] = {}
+    for key, net, fn in (("floor", guidance, guidance_passes),
+                         ("perceptual", perceptual, fwd_bwd(getattr(perceptual, "features", None), (1, 3, H, W)))):
+        if not hasattr(net, "precision"):
+            continue
+        auto = net.precision
+        out[f"{key}_dtype"] = str(net.compute_dtype(torch.device("cpu"))).replace("torch.", "")
+        if key == "perceptual":
+            out["perceptual_auto"] = timed(fn, reps)
+        net.precision = "fp32"
+        try:
+            out[f"{key}_fp32"] = timed(fn, reps)
+        finally:
+            net.precision = auto
+    return out
 
 
 # --------------------------------------------------------------------------- part 2
@@ -133,6 +158,17 @@ def _measured_by(raw: dict[str, Any], part: str) -> list[str]:
     return [f"Measured by `{run['command']}` ({run['utc']}).", ""] if run else []
 
 
+def _headroom(rows: list[dict[str, Any]]) -> list[str]:
+    """What the goal leaves besides the guidance passes, against what the field work alone measured."""
+    f = common.fmt
+    lines = [f"- {r['scene']} / {r['guide']}: at {TARGET_RATIO}x the rest of the step (both render passes, the "
+             f"perceptual network, the loss arithmetic) would have to fit in {f(r['floor'] * (TARGET_RATIO - 1))} s; "
+             f"the field work alone (pass 1 + pass 2) took {f(r['render'] + r['backprop'])} s "
+             f"({f((r['render'] + r['backprop']) / r['floor'])}x the floor), the losses beyond the floor "
+             f"{f(max(0.0, r['losses'] - r['floor']))} s." for r in rows if r.get("floor")]
+    return ["", "What the goal leaves (same figures):", "", *lines] if lines else []
+
+
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
     f = common.fmt
     body = ["### Part 1: one stylization step at the paper's resolution versus its guidance floor", "",
@@ -149,6 +185,16 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
     body += _measured_by(raw, "steps")
     body += common.md_table(["scene", "view", "guide", "step (s)", "pass 1: render (s)", "losses + dL/dI (s)",
                              "pass 2: patch backprop (s)", "guidance floor (s)", "step / floor", "meets goal"], rows)
+    body += _headroom(raw.get("steps", []))
+    prec = [[r["scene"], r["guide"], f"{f(r['floor'])} ({r['floor_dtype']})", f(r["floor_fp32"]),
+             f"{f(r.get('perceptual_auto'))} ({r.get('perceptual_dtype', '–')})", f(r.get("perceptual_fp32"))]
+            for r in raw.get("steps", []) if "floor_fp32" in r]
+    if prec:
+        body += ["", "Arithmetic of the frozen networks on this CPU (`guidance.clip.precision`, `guidance.vgg.precision`; "
+                 "`auto` in brackets): the floor's passes and the perceptual network's forward+backward at the view's "
+                 "size, same run. Where float32 is faster, set the precision to fp32.", ""]
+        body += common.md_table(["scene", "guide", "guidance floor, auto (s)", "guidance floor, fp32 batched (s)",
+                                 "perceptual, auto (s)", "perceptual, fp32 (s)"], prec)
     job = raw.get("job")
     if job:
         body += ["", "### Part 2: the whole paper-resolution job on fangzhou_nature", "",

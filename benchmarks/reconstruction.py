@@ -197,7 +197,10 @@ def first_reaching(records: list[dict], metric: str, target: float) -> Optional[
 
 
 def verdicts(results: dict, specs: dict, scale: float, quick: bool) -> list[str]:
-    lines = ["**Targets**" + (" (not judged: quick run / scaled budget)" if quick or scale != 1.0 else "") + ":", ""]
+    """Each target judged on the FINAL figure (all held-out views at full resolution); an intermediate
+    checkpoint (one view, maybe every N-th pixel) reaching it is reported, never counted."""
+    lines = ["**Targets**" + (" (not judged: quick run / scaled budget)" if quick or scale != 1.0 else "")
+             + " (judged on the final evaluation of all held-out views):", ""]
     head, fern = results.get("head"), results.get("fern")
     if head is not None:
         s = specs["head"]
@@ -208,10 +211,9 @@ def verdicts(results: dict, specs: dict, scale: float, quick: bool) -> list[str]
                 continue
             v = r["final"].get(s["metric"], float("nan"))
             t = first_reaching(r["records"], s["metric"], s["target"])
-            ok = v >= s["target"] or t is not None
             lines.append(f"- head >= {s['target']:.0f} dB masked PSNR within {s['budget'] * scale:.0f} s, {bb}: "
-                         f"**{'MET' if ok else 'NOT MET'}** (masked PSNR {v:.2f} dB at {r['train_seconds']:.0f} s"
-                         + (f", first >= target at {t:.0f} s" if t is not None else "") + ").")
+                         f"**{'MET' if v >= s['target'] else 'NOT MET'}** (masked PSNR {v:.2f} dB at "
+                         f"{r['train_seconds']:.0f} s" + _checkpoint_note(t) + ").")
     if fern is not None:
         s = specs["fern"]
         ok_runs = {bb: r for bb, r in fern.items() if "error" not in r}
@@ -220,18 +222,17 @@ def verdicts(results: dict, specs: dict, scale: float, quick: bool) -> list[str]
         else:
             best = max(ok_runs, key=lambda b: ok_runs[b]["final"].get("psnr", -1))
             fastest = min(ok_runs, key=lambda b: ok_runs[b]["sec_per_step"])
-            reach = {bb: first_reaching(r["records"], "psnr", s["target"]) for bb, r in ok_runs.items()}
-            reached = {bb: t for bb, t in reach.items() if t is not None}
-            if reached:
-                bb = min(reached, key=reached.get)
-                lines.append(f"- fern >= {s['target']:.0f} dB PSNR within {s['budget'] * scale:.0f} s: **MET** by {bb} "
-                             f"(first at {reached[bb]:.0f} s of training).")
-            else:
-                lines.append(f"- fern >= {s['target']:.0f} dB PSNR within {s['budget'] * scale:.0f} s: **NOT MET** "
-                             f"by any backbone (best: {best}, {ok_runs[best]['final'].get('psnr', float('nan')):.2f} dB).")
-            lines.append(f"  Fastest backbone per step on fern: {fastest} "
-                         f"({ok_runs[fastest]['sec_per_step']:.2f} s/step); highest PSNR: {best}.")
+            v = ok_runs[fastest]["final"].get("psnr", float("nan"))
+            t = first_reaching(ok_runs[fastest]["records"], "psnr", s["target"])
+            lines.append(f"- fern >= {s['target']:.0f} dB PSNR within {s['budget'] * scale:.0f} s with the fastest "
+                         f"backbone ({fastest}, {ok_runs[fastest]['sec_per_step']:.2f} s/step): "
+                         f"**{'MET' if v >= s['target'] else 'NOT MET'}** ({v:.2f} dB" + _checkpoint_note(t) + ").")
+            lines.append(f"  Highest PSNR on fern: {best} ({ok_runs[best]['final'].get('psnr', float('nan')):.2f} dB).")
     return lines
+
+
+def _checkpoint_note(t: Optional[float]) -> str:
+    return f"; an intermediate one-view checkpoint first reached the target at {t:.0f} s" if t is not None else ""
 
 
 def plot(results: dict, specs: dict, path: Path) -> None:
@@ -295,7 +296,7 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
                          common.fmt(f.get("psnr_masked")), common.fmt(f.get("ssim"), ".3f"),
                          common.fmt(t_hit, ".0f", none="not reached"), common.fmt(r["eval_seconds"], ".0f")])
     body += common.md_table(["scene", "backbone", "train time (s)", "steps", "s/step", "PSNR (dB)",
-                             "masked PSNR (dB)", "SSIM", "reaches target at (s)", "eval time (s)"], rows,
+                             "masked PSNR (dB)", "SSIM", "a one-view checkpoint >= target at (s)", "eval time (s)"], rows,
                             "ll" + "r" * 8)
     body += ["", "Target metric per scene: " + ", ".join(
         f"{k} = {'masked PSNR' if v['metric'] == 'psnr_masked' else 'PSNR'} >= {v['target']:.0f} dB"
@@ -330,8 +331,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fixed-schedule", action="store_true", help="schedule LR/anneal over reconstruct.steps")
     p.add_argument("--override", nargs="*", default=[], help="extra Hydra overrides for every run")
     p.add_argument("--section", default=NAME, help="name of the BENCHMARKS.md section to write (default: reconstruction)")
+    p.add_argument("--raw", type=Path, default=None, help="raw results JSON (default outputs/benchmarks/<section>.json; "
+                   "real runs behind BENCHMARKS.md are kept in benchmarks/results/)")
+    p.add_argument("--report-only", action="store_true", help="train nothing: rebuild the section and figure from --raw "
+                   "(its command, machine and settings are the run's)")
     common.add_common_args(p)
     args = p.parse_args(argv)
+    if args.report_only:
+        return report_only(args)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     common.quiet_logs()
     if args.budget_scale is None:
@@ -377,12 +384,32 @@ def main(argv: list[str] | None = None) -> int:
     except Exception as exc:  # noqa: BLE001
         log.warning("no plot: %s", exc)
         fig = None
-    raw = out.parent / "outputs" / "benchmarks" / f"{args.section}{'.quick' if args.quick else ''}.json" \
-        if out.parent == ROOT else out.parent / f"{args.section}.json"
+    raw = args.raw or (out.parent / "outputs" / "benchmarks" / f"{args.section}{'.quick' if args.quick else ''}.json"
+                       if out.parent == ROOT else out.parent / f"{args.section}.json")
     raw.parent.mkdir(parents=True, exist_ok=True)
-    raw.write_text(json.dumps({"args": vars(args) | {"out": str(out), "figures": str(figs)}, "results": results},
-                              default=str, indent=1))
-    common.finish(args, args.section, report(results, specs, args, argv, info, fig, out, extra))
+    saved_info = {**info, "total_s": time.perf_counter() - info["t0"]}
+    raw.write_text(json.dumps({"args": vars(args) | {"out": str(out), "figures": str(figs)}, "argv": argv,
+                               "info": saved_info, "results": results}, default=str, indent=1))
+    common.finish(args, args.section, report(results, specs, args, argv, saved_info, fig, out, extra))
+    return 0
+
+
+def report_only(args: argparse.Namespace) -> int:
+    """The section of a saved run (``--raw``): its results, settings, command and machine, re-plotted."""
+    if args.raw is None or not args.raw.is_file():
+        raise SystemExit(f"--report-only needs --raw FILE of a finished run (got {args.raw})")
+    saved = json.loads(args.raw.read_text())
+    run_args = argparse.Namespace(**{**saved["args"], "no_write": args.no_write, "out": args.out,
+                                     "figures": args.figures, "quick": saved["args"].get("quick", False)})
+    out, figs = common.output_paths(run_args)
+    specs = scene_specs()
+    for scene, s in specs.items():
+        s["overrides_used"] = s["overrides"] + list(saved["args"].get("override") or [])
+    fig = figs / f"{run_args.section}.png"
+    plot(saved["results"], specs, fig)
+    text = report(saved["results"], specs, run_args, saved["argv"], saved["info"], fig, out,
+                  list(saved["args"].get("override") or []))
+    common.finish(run_args, run_args.section, text)
     return 0
 
 

@@ -105,8 +105,9 @@ class RenderConfig(Section):
                          "(validation, evaluation, export renders; memory only)", off=_CHUNK_OFF,
                          changes_results=False)
     view_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray of full views rendered "
-                                          "without grad (validation, evaluation, videos, stage=render); null: "
-                                          "render.num_samples", changes_results=False)
+                                          "without grad (validation, evaluation, videos, stage=render) where an "
+                                          "occupancy grid places them; null, or a scene without a grid (NDC "
+                                          "captures): render.num_samples", changes_results=False)
     stop_transmittance: Float = Setting(1e-4, ge=0.0, le=0.1, description="no-grad renders (evaluation, videos, "
                                         "the stylization's first pass) stop marching a ray once its transmittance "
                                         "is below this, so each pixel changes by less than it; 0: every sample",
@@ -177,8 +178,9 @@ class StylizeConfig(Section):
         "images' own (the data resolution policy: 270x480 selfies, 256x256 H3DS head, as the paper)",
         allowed="auto or an integer in [8, 4096]")
     patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)")
-    num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing; null: "
-                                         "render.num_samples")
+    num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing, where an "
+                                         "occupancy grid places them at the surface; null, or a scene without a "
+                                         "grid (NDC captures): render.num_samples")
     chunk: Int = Setting(8192, ge=1, le=2**20, description="rays per chunk of the no-grad first pass (Sec. 4.4); "
                          "the random sample offsets are drawn per chunk, so it is part of the cache key",
                          off=_CHUNK_OFF)

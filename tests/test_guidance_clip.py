@@ -10,8 +10,8 @@ import torch
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import CLIPGuidance, build_guidance
 from nerfart_plugin.guidance import weights as wts
-from nerfart_plugin.guidance import clip as clip_mod
 from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
+from nerfart_plugin.guidance.precision import cpu_has_bf16
 
 TINY_CFG = {
     "name": "clip",
@@ -74,7 +74,7 @@ def test_reduced_precision_matches_fp32(precision: str) -> None:
     ga = torch.autograd.grad(a.square().sum(), x)[0]
     gb = torch.autograd.grad(low.encode_image(x).square().sum(), x)[0]
     assert torch.isfinite(gb).all() and cos(ga.flatten(1), gb.flatten(1)).min() > 0.99
-    want = torch.bfloat16 if precision == "bf16" or clip_mod._cpu_has_bf16() else torch.float32
+    want = torch.bfloat16 if precision == "bf16" or cpu_has_bf16() else torch.float32
     assert low.compute_dtype(torch.device("cpu")) == want
 
 

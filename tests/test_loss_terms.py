@@ -18,8 +18,8 @@ BACKBONE = {"name": "volsdf", "hidden_dim": 16, "n_layers": 1, "feature_dim": 8,
 RENDER = {"num_samples": 8, "occupancy": {"resolution": 8}}
 
 
-def _setup(masks: bool = True) -> SceneSetup:
-    return SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, 8, 8, masks)
+def _setup(masks: bool = True, occupancy: int = 8) -> SceneSetup:
+    return SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, 8, masks)
 
 
 def _rays(n: int = 64) -> dict:
@@ -97,14 +97,23 @@ def test_mask_ray_share_draws_the_subject_more_often():
     assert no_masks.foreground_rays() is None and no_masks.sample_batch(0)["rays_o"].shape == (32, 3)
 
 
-def _stylization(cfg: dict, tv_weight: float = 0.5) -> StylizationSystem:
+def _stylization(cfg: dict, tv_weight: float = 0.5, occupancy: int = 8) -> StylizationSystem:
     enc = {"name": "grid", "resolution": 8, "n_components": 2, "tv_weight": tv_weight}
     torch.manual_seed(0)
-    src = build_renderer(BACKBONE, enc, RENDER, _setup())
+    setup = _setup(occupancy=occupancy)
+    src = build_renderer(BACKBONE, enc, RENDER, setup)
     views = [camera_batch(torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), torch.eye(4)[:3], 8, 8, 0.5, 3.5, False)]
     return StylizationSystem({"steps": 2, **cfg}, {"lambda_global": 0.0, "lambda_local": 0.0}, BACKBONE, enc, RENDER,
-                             _setup(), src.state_dict(), views, ToyGuidance(), EdgePerceptual(), "red", "a photo",
+                             setup, src.state_dict(), views, ToyGuidance(), EdgePerceptual(), "red", "a photo",
                              ["blue"])
+
+
+def test_stylize_num_samples_only_where_an_occupancy_grid_places_them():
+    """stylize.num_samples replaces the reconstruction's samples per ray only where an occupancy grid puts them
+    at the surface; a scene without a grid (NDC) stylizes and renders its views at render.num_samples."""
+    guided, uniform = _stylization({"num_samples": 4}), _stylization({"num_samples": 4}, occupancy=0)
+    assert (guided.renderer.num_samples, guided.source.num_samples, guided.renderer.view_samples) == (4, 4, 4)
+    assert (uniform.renderer.num_samples, uniform.source.num_samples, uniform.renderer.view_samples) == (8, 8, None)
 
 
 def test_tv_weight_reaches_the_stylization_ray_terms_unless_geometry_is_frozen():

@@ -122,3 +122,22 @@ def test_full_views_render_with_view_samples() -> None:
     torch.testing.assert_close(full["rgb"], six["rgb"], rtol=0, atol=1e-6)
     assert float((full["rgb"] - thirty_two["rgb"]).abs().max()) > 1e-4
     assert six["t_samples"].shape[1] == 6 and thirty_two["t_samples"].shape[1] == 32
+
+
+def test_few_view_samples_only_where_an_occupancy_grid_places_them() -> None:
+    """render.view_samples (and stylize.num_samples) apply where the occupancy grid puts the samples at the
+    surface; without a grid (NDC captures: uniform samples over the frustum) full views keep num_samples,
+    the density the field was trained with."""
+    from render_helpers import build_renderer, SceneSetup
+
+    view = {**front_view(12, 10, 12.0), "H": 12, "W": 10}
+    for occupancy, want in ((8, 6), (0, 32)):
+        torch.manual_seed(0)
+        setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, 32, True)
+        r = build_renderer({"name": "volsdf"}, {"name": "grid", "resolution": 16},
+                           {"view_samples": 6, "occupancy": {"warmup_steps": 0}}, setup).eval()
+        assert r.view_samples == (6 if occupancy else None) and r.guided_samples(6) == (6 if occupancy else None)
+        with torch.no_grad():
+            full = r.render_chunked(view, chunk=50, with_normals=False)
+            ref = r.march(view, num_samples=want, with_normals=False)
+        torch.testing.assert_close(full["rgb"], ref["rgb"], rtol=0, atol=1e-6)

@@ -15,7 +15,7 @@ Config (dict or OmegaConf) keys and defaults::
                                   # or vgg | edges | imagenet (Lite0's first stages)
     clip: {model: ViT-B-32, pretrained: openai, cache_dir: null, quick_gelu: null,
            resize_mode: squash, model_overrides: null}
-    vgg:  {weights: DEFAULT, layers: [relu1_2, relu2_2, relu3_3, relu4_3], max_size: null}
+    vgg:  {weights: DEFAULT, layers: [relu1_2, relu2_2, relu3_3, relu4_3], max_size: null, precision: auto}
     toy:  {num_structure: 8, structure_scale: 0.5, input_size: 64}
 """
 

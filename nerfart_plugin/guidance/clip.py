@@ -27,7 +27,6 @@ tokenizer (the end-of-text token is kept); we log a warning naming the prompt.
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
 from pathlib import Path
@@ -40,6 +39,7 @@ from torch import Tensor
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance
+from nerfart_plugin.guidance.precision import PRECISIONS, Precision, compute_dtype
 from nerfart_plugin.registry import register
 
 log = logging.getLogger(__name__)
@@ -124,19 +124,6 @@ def _is_torchscript_archive(path: str) -> bool:
         with zipfile.ZipFile(path) as zf:
             return any(n.endswith("constants.pkl") for n in zf.namelist())
     except (zipfile.BadZipFile, OSError):
-        return False
-
-
-PRECISIONS = ("auto", "fp32", "bf16", "fp16")
-Precision = Literal["auto", "fp32", "bf16", "fp16"]
-
-
-@functools.lru_cache(maxsize=1)
-def _cpu_has_bf16() -> bool:
-    """Native bf16 matmuls on this CPU (oneDNN: AVX512-BF16 or AMX)."""
-    try:
-        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
         return False
 
 
@@ -330,14 +317,7 @@ class CLIPGuidance(Guidance):
 
     def compute_dtype(self, device: torch.device) -> torch.dtype:
         """The dtype image encoding runs in on ``device`` (see ``precision``)."""
-        p = self.precision
-        if p == "auto":
-            if device.type == "cuda":
-                return torch.float16
-            return torch.bfloat16 if device.type == "cpu" and _cpu_has_bf16() else torch.float32
-        if p == "fp16" and device.type != "cuda":
-            raise ConfigError("guidance.clip.precision=fp16 needs a CUDA device (CPU autocast: use bf16 or auto).")
-        return {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}[p]
+        return compute_dtype(self.precision, device, "guidance.clip.precision")
 
     def _net_image(self, x: Tensor) -> Tensor:
         """The image tower on preprocessed ``x`` [B,3,S,S] in ``compute_dtype``; float32 [B,D]."""

@@ -32,6 +32,7 @@ from torch import Tensor, nn
 from nerfart_plugin.config_types import Int, Limits
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
+from nerfart_plugin.guidance.precision import PRECISIONS, Precision, compute_dtype
 
 log = logging.getLogger(__name__)
 
@@ -104,6 +105,12 @@ class Perceptual(nn.Module):
         allow_download: permit downloads (None -> env NERFART_ALLOW_DOWNLOAD).
         max_size: images with a longer side are downscaled (antialiased) to it
             before VGG, to bound cost; None keeps the size.
+        precision: the trunk's arithmetic, as ``guidance.clip.precision``: "fp32", "bf16"
+            (autocast), "fp16" (autocast; CUDA only) or "auto" (default): fp16 on CUDA, bf16 on
+            CPUs with native bf16 (AVX512-BF16/AMX), else fp32. Features are returned as float32,
+            so Eq. 9 is summed in float32 against float32 source features; in bf16 the loss stays within
+            2% and its image gradient within cosine 0.99 of fp32, and an unchanged view scores exactly 0
+            (``tests/test_guidance_vgg.py``).
     """
 
     name = "vgg16"
@@ -115,9 +122,14 @@ class Perceptual(nn.Module):
         allow_random_weights: bool = False,
         allow_download: bool | None = None,
         max_size: Optional[Annotated[Int, Limits(ge=16, le=8192)]] = None,
+        precision: Precision = "auto",
     ) -> None:
         super().__init__()
         from torchvision.models.vgg import cfgs, make_layers
+
+        if precision not in PRECISIONS:
+            raise ConfigError(f"guidance.vgg.precision={precision!r}; use one of {', '.join(PRECISIONS)}.")
+        self.precision = precision
 
         layers = list(layers)
         bad = [n for n in layers if n not in VGG16_LAYERS]
@@ -174,6 +186,10 @@ class Perceptual(nn.Module):
         self.features_net.eval()
         return self
 
+    def compute_dtype(self, device: torch.device) -> torch.dtype:
+        """The dtype the trunk runs in on ``device`` (see ``precision``)."""
+        return compute_dtype(self.precision, device, "guidance.vgg.precision")
+
     def features(self, img: Tensor) -> list[Tensor]:
         """``img`` [B,3,H,W] in [0,1] -> activations of ``self.layers`` (in that order),
         each [B,C_l,H_l,W_l]; differentiable w.r.t. ``img``."""
@@ -183,12 +199,14 @@ class Perceptual(nn.Module):
         if self.max_size is not None and max(x.shape[-2:]) > self.max_size:
             x = kornia.geometry.transform.resize(x, self.max_size, side="long", antialias=True)
         x = self.normalize(x)
+        dtype = self.compute_dtype(x.device)
         out: dict[str, Tensor] = {}
-        for i, m in enumerate(self.features_net):
-            x = m(x)
-            if i in self._take:
-                out[self._take[i]] = x
-        return [out[n] for n in self.layers]
+        with torch.autocast(x.device.type, dtype=dtype, enabled=dtype != torch.float32):
+            for i, m in enumerate(self.features_net):
+                x = m(x)
+                if i in self._take:
+                    out[self._take[i]] = x
+        return [out[n].float() for n in self.layers]
 
     def forward(self, img: Tensor) -> list[Tensor]:
         return self.features(img)

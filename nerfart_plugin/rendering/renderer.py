@@ -51,7 +51,8 @@ class VolumeRenderer(nn.Module):
             than it (nerfacc's early ray termination); 0 marches every sample.
         march_block: samples per ray evaluated between two transmittance checks of :meth:`march`.
         view_samples: K of full views rendered without grad (:meth:`render_chunked`: validation,
-            evaluation, videos); None: ``num_samples``.
+            evaluation, videos); None: ``num_samples``. Taken only with an occupancy grid
+            (:meth:`guided_samples`).
     """
 
     def __init__(
@@ -72,11 +73,11 @@ class VolumeRenderer(nn.Module):
         self.compact = bool(compact)
         self.stop_transmittance = float(stop_transmittance)
         self.march_block = max(1, int(march_block))
-        self.view_samples = int(view_samples) if view_samples else None
         self.field = field
         self.num_samples = int(num_samples)
         self.background = background
         self.occupancy = occupancy
+        self.view_samples = self.guided_samples(view_samples)
         if num_coarse is None:  # ~2 bins per cell crossed: with the sampler's 1-bin dilation no cell is missed
             num_coarse = 2 * occupancy.resolution if occupancy is not None else 256
         self.num_coarse = int(num_coarse)
@@ -91,6 +92,12 @@ class VolumeRenderer(nn.Module):
     def occupied_fraction(self) -> Optional[float]:
         """Share of occupied cells of the occupancy grid (None without a grid)."""
         return self.occupancy.occupied_fraction if self.occupancy is not None else None
+
+    def guided_samples(self, k: Optional[int]) -> Optional[int]:
+        """``k`` where the occupancy grid places the samples at the surface, so that a few per ray render the
+        scene (``render.view_samples``, ``stylize.num_samples``); None without a grid (e.g. NDC captures), whose
+        uniform samples need :attr:`num_samples`, the density the field was trained with."""
+        return int(k) if k and self.occupancy is not None else None
 
     @torch.no_grad()
     def update_occupancy(self, step: int, force: bool = False) -> bool:
