@@ -311,7 +311,7 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
                 body.append(f"- {scene} / {bb} ({m}): {pts}")
     if fig is not None:
         body += ["", f"![PSNR vs time]({common.rel(fig, out.parent)})"]
-    return common.section(args.section, "Reconstruction: held-out PSNR versus wall time (" + ", ".join(args.scenes) + ")", common.command(NAME + ".py", argv),
+    return common.section(args.section, "Reconstruction: held-out PSNR versus wall time (" + ", ".join([*args.scenes, *extra]) + ")", common.command(NAME + ".py", argv),
                           info, body, args.quick)
 
 

@@ -155,9 +155,10 @@ class ReconstructConfig(Section):
                                 "reconstructs the scene, so it cannot be 0")
     lambda_eikonal: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the eikonal term (SDF); 0: off")
     lambda_mask: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the mask BCE (scenes with mattes); 0: off")
-    mask_ray_share: Float = Setting(0.6, ge=0.0, le=1.0, description="scenes with mattes: share of each step's "
+    mask_ray_share: Float = Setting(0.0, ge=0.0, le=1.0, description="scenes with mattes: share of each step's "
                                     "rays drawn from inside the mattes (the rest from all pixels), so the subject "
-                                    "gets more of the batch than its area; 0: all rays uniform over the pixels")
+                                    "gets more of the batch than its area; 0 (default): all rays uniform over the "
+                                    "pixels (0.6 leaves floaters in the background of short runs: README)")
     val_every: Int = Setting(1000, ge=0, le=10**9, description="steps between validations; 0: no validation",
                              changes_results=False)
     checkpoint_every: Int = _checkpoint_every(100)
