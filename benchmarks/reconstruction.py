@@ -267,7 +267,8 @@ def _defaults_text() -> str:
     """The sampling settings of the default config, as composed now (not hard-coded)."""
     c = common.compose([])
     return (f"{c['encoding']['name']} encoding, {c['render']['num_samples']} samples/ray, occupancy grid "
-            f"{c['render']['occupancy']['resolution']}^3, {c['reconstruct']['batch_rays']} rays/step")
+            f"{c['render']['occupancy']['resolution']}^3 where the scene has one (NDC captures: none, uniform samples), "
+            f"{c['reconstruct']['batch_rays']} rays/step")
 
 
 def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str], info: dict, fig: Optional[Path],
