@@ -404,8 +404,6 @@ def report_only(args: argparse.Namespace) -> int:
                                      "figures": args.figures, "quick": saved["args"].get("quick", False)})
     out, figs = common.output_paths(run_args)
     specs = scene_specs()
-    for scene, s in specs.items():
-        s["overrides_used"] = s["overrides"] + list(saved["args"].get("override") or [])
     fig = figs / f"{run_args.section}.png"
     plot(saved["results"], specs, fig)
     text = report(saved["results"], specs, run_args, saved["argv"], saved["info"], fig, out,

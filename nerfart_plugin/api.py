@@ -214,9 +214,7 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         cameras = build_scene(cfg).cameras
     renderer = loaded.renderer
     if kind == "stylization":  # rendered as the stylization was evaluated
-        renderer.view_samples = renderer.guided_samples(cfg.stylize.num_samples)
-        if renderer.view_samples:
-            renderer.num_samples = renderer.view_samples
+        renderer.reduce_samples(cfg.stylize.num_samples)
     dev = pick_device(device)
     return Run(folder, loaded.checkpoint, kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
                stamp=loaded.metrics.get("stamp") or "")

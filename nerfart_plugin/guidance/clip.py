@@ -39,7 +39,7 @@ from torch import Tensor
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance
-from nerfart_plugin.guidance.precision import PRECISIONS, Precision, compute_dtype
+from nerfart_plugin.guidance.precision import Precision, check_precision, compute_dtype
 from nerfart_plugin.registry import register
 
 log = logging.getLogger(__name__)
@@ -182,9 +182,7 @@ class CLIPGuidance(Guidance):
             )
         if resize_mode not in ("squash", "shortest"):
             raise ConfigError(f"guidance.clip.resize_mode={resize_mode!r}; use 'squash' or 'shortest'")
-        if precision not in PRECISIONS:
-            raise ConfigError(f"guidance.clip.precision={precision!r}; use one of {', '.join(PRECISIONS)}")
-        self.precision = precision
+        self.precision = check_precision(precision, "guidance.clip.precision")
         if isinstance(pretrained, str) and pretrained.strip().lower() in ("", "none", "null", "random"):
             pretrained = None
         self.model_name = model

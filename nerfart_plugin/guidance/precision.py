@@ -14,11 +14,18 @@ import torch
 
 from nerfart_plugin.errors import ConfigError
 
-__all__ = ["PRECISIONS", "Precision", "cpu_has_bf16", "compute_dtype"]
+__all__ = ["PRECISIONS", "Precision", "check_precision", "cpu_has_bf16", "compute_dtype"]
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
 #: ``guidance.clip.precision`` / ``guidance.vgg.precision``
 Precision = Literal["auto", "fp32", "bf16", "fp16"]
+
+
+def check_precision(precision: str, setting: str) -> str:
+    """``precision`` if it is one of :data:`PRECISIONS`, else a ConfigError naming ``setting``."""
+    if precision not in PRECISIONS:
+        raise ConfigError(f"{setting}={precision!r}; use one of {', '.join(PRECISIONS)}.")
+    return precision
 
 
 @functools.lru_cache(maxsize=1)
@@ -33,12 +40,11 @@ def cpu_has_bf16() -> bool:
 def compute_dtype(precision: str, device: torch.device, setting: str) -> torch.dtype:
     """The dtype a guidance network runs in on ``device`` for ``precision`` (one of :data:`PRECISIONS`);
     ``setting`` names the config key in errors (fp16 needs CUDA)."""
+    check_precision(precision, setting)
     if precision == "auto":
         if device.type == "cuda":
             return torch.float16
         return torch.bfloat16 if device.type == "cpu" and cpu_has_bf16() else torch.float32
     if precision == "fp16" and device.type != "cuda":
         raise ConfigError(f"{setting}=fp16 needs a CUDA device (CPU autocast: use bf16 or auto).")
-    if precision not in PRECISIONS:
-        raise ConfigError(f"{setting}={precision!r}; use one of {', '.join(PRECISIONS)}.")
     return {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}[precision]

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 from nerfart_plugin.config_types import Int, Limits
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
-from nerfart_plugin.guidance.precision import PRECISIONS, Precision, compute_dtype
+from nerfart_plugin.guidance.precision import Precision, check_precision, compute_dtype
 
 log = logging.getLogger(__name__)
 
@@ -127,9 +127,7 @@ class Perceptual(nn.Module):
         super().__init__()
         from torchvision.models.vgg import cfgs, make_layers
 
-        if precision not in PRECISIONS:
-            raise ConfigError(f"guidance.vgg.precision={precision!r}; use one of {', '.join(PRECISIONS)}.")
-        self.precision = precision
+        self.precision = check_precision(precision, "guidance.vgg.precision")
 
         layers = list(layers)
         bad = [n for n in layers if n not in VGG16_LAYERS]

@@ -99,6 +99,14 @@ class VolumeRenderer(nn.Module):
         uniform samples need :attr:`num_samples`, the density the field was trained with."""
         return int(k) if k and self.occupancy is not None else None
 
+    def reduce_samples(self, k: Optional[int]) -> Optional[int]:
+        """Sample ``k`` per ray in training and full views where :meth:`guided_samples` allows it (the
+        stylization's ``stylize.num_samples``); elsewhere keep :attr:`num_samples` for both. Returns the K taken."""
+        self.view_samples = self.guided_samples(k)
+        if self.view_samples:
+            self.num_samples = self.view_samples
+        return self.view_samples
+
     @torch.no_grad()
     def update_occupancy(self, step: int, force: bool = False) -> bool:
         """Refresh the occupancy grid from the field (see :meth:`OccupancyGrid.update`); False without a grid."""

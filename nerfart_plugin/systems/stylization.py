@@ -143,14 +143,11 @@ class StylizationSystem(RenderSystem):
         # The reconstruction's occupancy grid already concentrates samples at the surface, so the
         # stylization stage can afford fewer samples per ray (stylize.num_samples; null: as rendered);
         # without a grid (NDC captures) the uniform samples stay at the reconstruction's density.
-        k = self.renderer.guided_samples(self.cfg.num_samples)
-        if k:
-            self.renderer.num_samples = source.num_samples = k
-        elif self.cfg.num_samples:
+        # Its views (source images, held-out renders, video) use the samples it stylizes with.
+        if not (self.renderer.reduce_samples(self.cfg.num_samples) and source.reduce_samples(self.cfg.num_samples)) \
+                and self.cfg.num_samples:
             log.info("stylize.num_samples=%d ignored: no occupancy grid places the samples, so the stylization "
                      "keeps render.num_samples=%d", self.cfg.num_samples, self.renderer.num_samples)
-        # its views (source images, held-out renders, video) at the samples it stylizes with
-        self.renderer.view_samples = source.view_samples = k
         # Frozen helpers live outside the module tree: not trained, not checkpointed.
         self._frozen = {"source": source, "guidance": guidance, "perceptual": perceptual}
         self.views = views
