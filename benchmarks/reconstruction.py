@@ -90,7 +90,8 @@ def _budget_callback(budget: float, checkpoints: list[float], evaluate, stretch_
             for cfg in trainer.lr_scheduler_configs:
                 sched = cfg.scheduler
                 if hasattr(sched, "lr_lambdas"):
-                    sched.lr_lambdas = [lambda s, T=total: 0.1 ** min(s / T, 1.0)] * len(sched.lr_lambdas)
+                    final = pl_module.cfg.lr_final  # the system's own decay, stretched over the new total
+                    sched.lr_lambdas = [lambda s, T=total, f=final: f ** min(s / T, 1.0)] * len(sched.lr_lambdas)
 
         def _record(self, trainer, pl_module, t: float, final: bool) -> None:
             e0 = time.perf_counter()
@@ -303,12 +304,14 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
         f"{k} = {'masked PSNR' if v['metric'] == 'psnr_masked' else 'PSNR'} >= {v['target']:.0f} dB"
         for k, v in specs.items() if k in results) + ".", ""]
     body += verdicts(results, specs, args.budget_scale, args.quick)
-    body += ["", "Curves (training seconds: metric):", ""]
+    body += ["", "Curves (training seconds: metric; the last point, marked *, is the final all-view evaluation, the "
+             "others one view, so the step into it is partly a change of views):", ""]
     for scene, per in results.items():
         m = specs[scene]["metric"]
         for bb, r in per.items():
             if "error" not in r:
-                pts = ", ".join(f"{x['time']:.0f}: {x.get(m, float('nan')):.2f}" for x in r["records"])
+                pts = ", ".join(f"{x['time']:.0f}{'*' if x.get('final') else ''}: {x.get(m, float('nan')):.2f}"
+                                for x in r["records"])
                 body.append(f"- {scene} / {bb} ({m}): {pts}")
     if fig is not None:
         body += ["", f"![PSNR vs time]({common.rel(fig, out.parent)})"]
@@ -364,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
         cps = [budget * (i + 1) / args.checkpoints for i in range(args.checkpoints - 1)]
         log.info("== %s: loading (%s)", scene, " ".join(scene_ov))
         try:
-            pipe = load_scene(scene_ov)
+            pipe = load_scene([*scene_ov, f"backbone={args.backbones[0]}"])  # each run decides its own setup
         except Exception as exc:  # noqa: BLE001 - report and go on with the other scene
             log.error("cannot load %s: %s", scene, exc)
             results[scene] = {bb: {"error": f"{type(exc).__name__}: {exc}"} for bb in args.backbones}

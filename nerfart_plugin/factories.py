@@ -94,15 +94,18 @@ class SceneContext:
 
     def with_config(self, cfg: Any) -> "SceneContext":
         """The same loaded scene under another config of the same data (the setup decided again)."""
+        from nerfart_plugin.fields import occupancy_scores_opacity
         from nerfart_plugin.systems.scene_setup import decide_setup
 
         run, plain = typed(cfg)
-        return replace(self, cfg=run, plain=plain, setup=decide_setup(self.scene, run.render, ndc=self.ndc))
+        return replace(self, cfg=run, plain=plain, setup=decide_setup(self.scene, run.render, ndc=self.ndc,
+                                                                      opacity_scores=occupancy_scores_opacity(run.backbone)))
 
 
 def build_scene(cfg: Any) -> SceneContext:
     """Validate ``cfg`` (a DictConfig, dict or RunConfig), load its scene and decide the scene setup."""
     from nerfart_plugin.data.datamodule import SceneDataModule
+    from nerfart_plugin.fields import occupancy_scores_opacity
     from nerfart_plugin.systems.scene_setup import decide_setup
     from nerfart_plugin.utils.device import pick_device
     from nerfart_plugin.utils.io import check_writable_dir
@@ -114,7 +117,7 @@ def build_scene(cfg: Any) -> SceneContext:
     scene = dm.load()
     for note in scene.notes:
         log.info("data: %s", note)
-    setup = decide_setup(scene, run.render, ndc=dm.ndc)
+    setup = decide_setup(scene, run.render, ndc=dm.ndc, opacity_scores=occupancy_scores_opacity(run.backbone))
     return SceneContext(run, plain, dm, setup, pick_device(run.device), root, list(scene.notes))
 
 

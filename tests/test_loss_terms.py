@@ -78,17 +78,20 @@ def test_lambda_zero_and_missing_masks_skip_terms():
 
 
 def test_mask_ray_share_draws_the_subject_more_often():
-    """reconstruct.mask_ray_share of each batch comes from inside the mattes; 0 is the plain uniform draw;
+    """reconstruct.mask_ray_share of each batch comes from inside the mattes once
+    reconstruct.mask_ray_share_after steps have passed (before: the plain uniform draw, as with 0);
     each step's batch depends on (seed, step) only; scenes without mattes ignore the setting."""
     rays = _rays(4000)
     inside = rays["mask"].mean()  # ~0.5
-    share = _recon(0.0, rays, mask_ray_share=0.8, batch_rays=2000)
+    share = _recon(0.0, rays, mask_ray_share=0.8, mask_ray_share_after=3, batch_rays=2000)
     batch = share.sample_batch(3)
     assert batch["mask"].mean() > 0.8 + 0.15 * inside  # 80% from inside plus the uniform part's share
     assert torch.equal(batch["rays_d"], share.sample_batch(3)["rays_d"])
-    uniform = _recon(0.0, rays, mask_ray_share=0.0, batch_rays=2000)
-    g = torch.Generator().manual_seed(step_seed(0, 3))  # the plain uniform draw of earlier releases
-    assert torch.equal(uniform.sample_batch(3)["rays_d"], rays["rays_d"][torch.randint(0, 4000, (2000,), generator=g)])
+    g = torch.Generator().manual_seed(step_seed(0, 2))  # the plain uniform draw of earlier releases
+    plain = rays["rays_d"][torch.randint(0, 4000, (2000,), generator=g)]
+    assert torch.equal(share.sample_batch(2)["rays_d"], plain)  # step 2 < mask_ray_share_after: uniform
+    uniform = _recon(0.0, rays, mask_ray_share=0.0, mask_ray_share_after=0, batch_rays=2000)
+    assert torch.equal(uniform.sample_batch(2)["rays_d"], plain)
     assert abs(float(uniform.sample_batch(3)["mask"].mean()) - float(uniform.train_rays["mask"].mean())) < 0.1
     enc = {"name": "grid", "resolution": 8, "n_components": 2}
     unmasked = {k: v for k, v in _rays().items() if k != "mask"}
@@ -124,3 +127,13 @@ def test_tv_weight_reaches_the_stylization_ray_terms_unless_geometry_is_frozen()
     assert {k: w for k, (w, _) in frozen.ray_losses().items()} == {"reg": 0.1, "silhouette": 0.0, "eikonal": 0.0,
                                                                    "grid_tv": 0.0}
     assert _stylization({"local_patches": 0}).lambdas["local"] == 0.0
+
+
+def test_learning_rates_decay_to_lr_final():
+    """Both rates decay exponentially from their initial value to reconstruct.lr_final of it at
+    reconstruct.steps, and stay there."""
+    system = _recon(0.0, lr_final=0.05, steps=10)
+    sched = system.configure_optimizers()["lr_scheduler"]["scheduler"]
+    factor = sched.lr_lambdas[0]
+    assert factor(0) == 1.0 and abs(factor(5) - 0.05**0.5) < 1e-9 and abs(factor(10) - 0.05) < 1e-9
+    assert factor(20) == factor(10)

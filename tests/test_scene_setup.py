@@ -62,6 +62,20 @@ def test_every_choice_yields_to_config() -> None:
     assert decide_setup(head, _render(num_samples=7), ndc=False).num_samples == 7
 
 
+def test_weighted_sampling_asks_for_the_grid_and_a_density_backbone() -> None:
+    """render.occupancy.sampling=weighted turns the grid on in NDC (auto) for a density backbone and is a
+    config error for an SDF backbone; auto samples the occupied cells."""
+    fern = _scene("forward_facing", False)
+    s = decide_setup(fern, _render(occ_sampling="weighted"), ndc=True, opacity_scores=True)
+    assert s.occupancy_resolution == 64 and s.occupancy_sampling == "weighted"
+    assert any("sampling=weighted" in r for r in s.reasons)
+    assert decide_setup(fern, _render(), ndc=True, opacity_scores=True).occupancy_resolution == 0
+    head = decide_setup(_scene("object", True), _render(), ndc=False, opacity_scores=True)
+    assert head.occupancy_sampling == "occupied"
+    with pytest.raises(ConfigError, match="needs a density backbone"):
+        decide_setup(fern, _render(occ_sampling="weighted"), ndc=True, opacity_scores=False)
+
+
 def test_grid_no_finer_than_the_pixels_resolve() -> None:
     s = decide_setup(_scene("object", True, size=32), _render(occ_resolution=128), ndc=False)
     assert s.occupancy_resolution == 16 and any("cannot resolve" in r for r in s.reasons)

@@ -19,8 +19,18 @@ from nerfart_plugin.fields.volsdf import VolSDFField
 
 __all__ = [
     "Field", "NeuralField", "SDFField", "NeRFField", "VolSDFField", "NeuSField", "EnvironmentMap", "OccupancyGrid",
-    "build_field", "build_encoding", "build_background",
+    "build_field", "build_encoding", "build_background", "occupancy_scores_opacity",
 ]
+
+
+def occupancy_scores_opacity(backbone_cfg: dict[str, Any]) -> bool:
+    """Whether the occupancy grid of ``backbone_cfg``'s field (its ``name``) scores cells by opacity
+    (``Field.occupancy_threshold`` None: density fields), which weighted sampling reads as a proposal;
+    SDF fields score a shell around the surface instead."""
+    from nerfart_plugin import registry
+
+    name = (backbone_cfg or {}).get("name") or (backbone_cfg or {}).get("type")
+    return name is not None and registry.get("backbone", str(name)).occupancy_threshold is None
 
 
 def build_field(backbone_cfg: dict[str, Any], encoding_cfg: Optional[dict[str, Any]] = None, bound: float = 1.0) -> Field:

@@ -75,22 +75,24 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("score", torch.zeros(n))
         self.register_buffer("occupied", torch.ones(n, dtype=torch.bool))
         self._warned_empty = False
-        self._padded_cache: Optional[Tensor] = None
-        self._padded_version: Optional[tuple] = None
+        self._padded_cache: dict[str, Tensor] = {}
+        self._padded_version: dict[str, tuple] = {}
 
-    def _padded(self) -> Tensor:
-        """``occupied`` with a border of empty cells, flat [(r+2)^3]: a point outside the box falls in the
-        border, so a lookup needs no inside test. Rebuilt when ``occupied`` changes (update, load)."""
-        version = (self.occupied.data_ptr(), self.occupied._version, self.occupied.device)
-        if self._padded_version != version:
+    def _padded(self, name: str = "occupied") -> Tensor:
+        """Buffer ``name`` (``occupied`` or ``score``) with a border of empty cells, flat [(r+2)^3]: a point
+        outside the box falls in the border, so a lookup needs no inside test. Rebuilt when the buffer
+        changes (update, load)."""
+        buf = getattr(self, name)
+        version = (buf.data_ptr(), buf._version, buf.device)
+        if self._padded_version.get(name) != version:
             r = self.resolution
-            pad = torch.zeros(r + 2, r + 2, r + 2, dtype=torch.bool, device=self.occupied.device)
-            pad[1:-1, 1:-1, 1:-1] = self.occupied.view(r, r, r)
-            self._padded_cache, self._padded_version = pad.reshape(-1), version
-        return self._padded_cache
+            pad = torch.zeros(r + 2, r + 2, r + 2, dtype=buf.dtype, device=buf.device)
+            pad[1:-1, 1:-1, 1:-1] = buf.view(r, r, r)
+            self._padded_cache[name], self._padded_version[name] = pad.reshape(-1), version
+        return self._padded_cache[name]
 
-    def _lookup(self, u: Tensor) -> Tensor:
-        """Occupancy at grid coordinates ``u`` [...,3] (cell units, offset by the border): bool [...]."""
+    def _lookup(self, u: Tensor, name: str = "occupied") -> Tensor:
+        """Buffer ``name`` at grid coordinates ``u`` [...,3] (cell units, offset by the border): [...]."""
         r2 = float(self.resolution + 2)
         u = u.clamp_(0.0, r2 - 0.5).floor_()
         if r2**3 <= 2**24:  # the flat index is exact in float32: one matmul instead of integer arithmetic
@@ -98,7 +100,7 @@ class OccupancyGrid(nn.Module):
         else:
             ijk = u.long()
             flat = (ijk[..., 0] * int(r2) + ijk[..., 1]) * int(r2) + ijk[..., 2]
-        return self._padded()[flat]
+        return self._padded(name)[flat]
 
     @torch.no_grad()
     def query(self, x: Tensor) -> Tensor:
@@ -107,12 +109,14 @@ class OccupancyGrid(nn.Module):
         return self._lookup((x.float() + self.bound) * scale + 1.0)
 
     @torch.no_grad()
-    def query_rays(self, rays_o: Tensor, rays_d: Tensor, t: Tensor) -> Tensor:
+    def query_rays(self, rays_o: Tensor, rays_d: Tensor, t: Tensor, name: str = "occupied") -> Tensor:
         """Occupancy at ``rays_o + t rays_d`` for ray parameters ``t`` [R,M] -> bool [R,M] (as :meth:`query`,
-        without materialising the points in world units)."""
+        without materialising the points in world units); ``name="score"``: the cells' scores, float [R,M]
+        (0 outside the box)."""
         scale = self.resolution / (2.0 * self.bound)
         u0 = (rays_o.float() + self.bound) * scale + 1.0
-        return self._lookup(torch.addcmul(u0[:, None, :], (rays_d.float() * scale)[:, None, :], t.float()[..., None]))
+        u = torch.addcmul(u0[:, None, :], (rays_d.float() * scale)[:, None, :], t.float()[..., None])
+        return self._lookup(u, name)
 
     def _cell_points(self, idx: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
         r = self.resolution

@@ -15,10 +15,10 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from nerfart_plugin.errors import DataError
+from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.fields.base import Field
 from nerfart_plugin.fields.occupancy import OccupancyGrid
-from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples
+from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples, weighted_samples
 from nerfart_plugin.rendering.volume import ALPHA_T_EPS, exclusive_cumsum, weights_from_alpha
 
 __all__ = ["VolumeRenderer"]
@@ -50,6 +50,10 @@ class VolumeRenderer(nn.Module):
             ray once its transmittance falls below this, so each pixel (and opacity) changes by less
             than it (nerfacc's early ray termination); 0 marches every sample.
         march_block: samples per ray evaluated between two transmittance checks of :meth:`march`.
+        occupancy_sampling: with a grid: ``occupied`` (uniform over the occupied cells,
+            :func:`occupancy_samples`) or ``weighted`` (density fields: sections as dense as the grid's
+            transmittance-weighted cell opacities, :func:`weighted_samples`).
+        uniform_share: ``weighted``: share of the pdf spread uniformly over the occupied cells of a ray.
         view_samples: K of full views rendered without grad (:meth:`render_chunked`: validation,
             evaluation, videos); None: ``num_samples``. Taken only with an occupancy grid
             (:meth:`guided_samples`).
@@ -68,6 +72,8 @@ class VolumeRenderer(nn.Module):
         stop_transmittance: float = 1e-4,
         march_block: int = 4,
         view_samples: Optional[int] = None,
+        occupancy_sampling: str = "occupied",
+        uniform_share: float = 0.2,
     ) -> None:
         super().__init__()
         self.compact = bool(compact)
@@ -77,6 +83,14 @@ class VolumeRenderer(nn.Module):
         self.num_samples = int(num_samples)
         self.background = background
         self.occupancy = occupancy
+        if occupancy_sampling not in ("occupied", "weighted"):
+            raise ConfigError(f"render.occupancy.sampling={occupancy_sampling!r}: use occupied or weighted.")
+        if occupancy_sampling == "weighted" and field.occupancy_threshold is not None:
+            raise ConfigError("render.occupancy.sampling=weighted reads cell opacities, and this field's grid "
+                              "scores a shell around an SDF surface: use a density backbone (backbone=nerf) or "
+                              "render.occupancy.sampling=occupied.")
+        self.occupancy_sampling = occupancy_sampling
+        self.uniform_share = float(uniform_share)
         self.view_samples = self.guided_samples(view_samples)
         if num_coarse is None:  # ~2 bins per cell crossed: with the sampler's 1-bin dilation no cell is missed
             num_coarse = 2 * occupancy.resolution if occupancy is not None else 256
@@ -135,6 +149,9 @@ class VolumeRenderer(nn.Module):
         rays_o, rays_d = batch["rays_o"], batch["rays_d"]
         near, far = self.ray_bounds(rays_o, rays_d, batch["near"], batch["far"])
         k = int(num_samples or self.num_samples)
+        if self.occupancy is not None and self.occupancy_sampling == "weighted":
+            return weighted_samples(rays_o, rays_d, near, far, self.occupancy, k, self.num_coarse, perturb, generator,
+                                    self.uniform_share)
         if self.occupancy is not None:
             return occupancy_samples(rays_o, rays_d, near, far, self.occupancy, k, self.num_coarse, perturb, generator)
         return stratified_samples(near, far, k, perturb, generator)

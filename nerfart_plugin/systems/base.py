@@ -33,7 +33,8 @@ def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderCon
                                   update_every=occ.update_every, warmup_steps=occ.warmup_steps)
     return VolumeRenderer(field, num_samples=setup.num_samples, background=background, occupancy=occupancy,
                           background_color=setup.background_color, stop_transmittance=rc.stop_transmittance,
-                          view_samples=rc.view_samples)
+                          view_samples=rc.view_samples, occupancy_sampling=setup.occupancy_sampling,
+                          uniform_share=rc.occupancy.uniform_share)
 
 
 def param_groups(renderer: VolumeRenderer, lr_grid: float, lr_mlp: float, geometry: bool = True) -> list[dict]:

@@ -66,14 +66,15 @@ class ReconstructionSystem(RenderSystem):
     # ------------------------------------------------------------------ training
     def sample_batch(self, step: int) -> dict[str, torch.Tensor]:
         """``reconstruct.batch_rays`` random training rays for ``step`` (a function of (seed, step) only):
-        ``reconstruct.mask_ray_share`` of them from inside the mattes (scenes with mattes), the rest
-        uniformly from all training pixels."""
+        ``reconstruct.mask_ray_share`` of them from inside the mattes (scenes with mattes, from step
+        ``reconstruct.mask_ray_share_after`` on), the rest uniformly from all training pixels."""
         assert self.train_rays is not None, "ReconstructionSystem needs train_rays to train"
         # DDP: each rank draws its own rays (rank 0 draws what a single-device run draws)
         g = torch.Generator().manual_seed(step_seed(self.seed + 1_000_033 * self.global_rank, step))
         n = self.train_rays["rays_o"].shape[0]
         fg = self.foreground_rays()
-        k = int(round(self.cfg.mask_ray_share * self.cfg.batch_rays)) if fg is not None else 0
+        share = self.cfg.mask_ray_share if step >= self.cfg.mask_ray_share_after else 0.0
+        k = int(round(share * self.cfg.batch_rays)) if fg is not None else 0
         idx = torch.randint(0, n, (self.cfg.batch_rays - k,), generator=g)
         if k:
             idx = torch.cat([fg[torch.randint(0, fg.numel(), (k,), generator=g)], idx])
@@ -121,8 +122,9 @@ class ReconstructionSystem(RenderSystem):
     def configure_optimizers(self) -> Any:
         opt = torch.optim.Adam(param_groups(self.renderer, self.cfg.lr, self.cfg.lr_mlp), betas=(0.9, 0.99), eps=1e-15)
         total = max(1, self.total_steps)
-        # exponential decay to 10% of the initial rate over the run
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: 0.1 ** min(s / total, 1.0))
+        # exponential decay to reconstruct.lr_final of the initial rate over the run
+        final = self.cfg.lr_final
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: final ** min(s / total, 1.0))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 
     # ------------------------------------------------------------------ validation

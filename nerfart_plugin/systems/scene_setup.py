@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass, field
 from typing import Any, Optional
 
 from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.schema import RenderConfig, section
 
 log = logging.getLogger(__name__)
@@ -27,6 +28,8 @@ class SceneSetup:
         background_color: constant colour behind the field (None: no compositing).
         ndc: rays are NDC-warped (forward-facing captures).
         occupancy_resolution: cells per side of the occupancy grid (0 = off).
+        occupancy_sampling: where the grid puts samples: ``occupied`` (uniformly over occupied cells) or
+            ``weighted`` (density backbones: by the cells' transmittance-weighted opacities).
         num_samples: samples per ray.
         has_masks: foreground masks are available (mask loss on).
         reasons: why each choice was made (logged, written to metrics.json).
@@ -41,14 +44,18 @@ class SceneSetup:
     num_samples: int
     has_masks: bool
     reasons: list[str] = field(default_factory=list)
+    occupancy_sampling: str = "occupied"
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
-def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: bool) -> SceneSetup:
+def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: bool,
+                 opacity_scores: bool = False) -> SceneSetup:
     """Pick extent/background/sampling for ``scene`` from its capture type and resolution
-    (``render_cfg``: the ``render`` section, typed or as a dict of its keys)."""
+    (``render_cfg``: the ``render`` section, typed or as a dict of its keys; ``opacity_scores``: the
+    field's occupancy grid scores cells by opacity (density fields, ``backbone=nerf``;
+    :func:`~nerfart_plugin.fields.occupancy_scores_opacity`))."""
     rc = section(RenderConfig, render_cfg)
     reasons: list[str] = []
     has_masks = scene.masks is not None
@@ -78,13 +85,22 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
         reasons.append("field box [-1,1]^3: unit sphere of the normalized scene")
 
     occ = rc.occupancy
+    sampling = "occupied" if occ.sampling == "auto" else occ.sampling
+    if sampling == "weighted" and not opacity_scores:
+        raise ConfigError("render.occupancy.sampling=weighted needs a density backbone (backbone=nerf): an SDF "
+                          "backbone's grid marks a shell around its surface, not opacities. Use "
+                          "render.occupancy.sampling=occupied (or auto).")
     enabled = occ.enabled
     if enabled == "auto":
         # An NDC frustum is scene from the near plane to infinity: a forward-facing capture leaves
         # almost no empty cells to skip (fern: ~53% occupied), and the grid's refreshes then cost
         # more than they save (BENCHMARKS.md, scene_setup). Bounded/object captures are mostly empty.
-        enabled = not ndc
-        if ndc:
+        # Weighted sampling asks for the grid (it proposes where rays end), NDC or not.
+        enabled = not ndc or sampling == "weighted"
+        if ndc and enabled:
+            reasons.append("occupancy grid on in NDC for render.occupancy.sampling=weighted: the cells' "
+                           "transmittance-weighted opacities place the samples where rays end")
+        elif ndc:
             reasons.append("occupancy grid off: an NDC frustum is nearly all occupied, nothing to skip "
                            "(render.occupancy.enabled=true forces it)")
     occ_res = occ.resolution if enabled else 0
@@ -100,7 +116,7 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
         reasons.append("occupancy grid off (render.occupancy.enabled=false): uniform stratified sampling")
     num_samples = rc.num_samples
     setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,
-                       has_masks, reasons)
+                       has_masks, reasons, sampling if occ_res else "occupied")
     for r in reasons:
         log.info("scene setup: %s", r)
     return setup
