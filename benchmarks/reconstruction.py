@@ -86,12 +86,7 @@ def _budget_callback(budget: float, checkpoints: list[float], evaluate, stretch_
             step = max(1, trainer.global_step)
             total = max(step + 1, int(step + (budget - t) * step / max(t, 1e-9)))
             total = min(total, int(trainer.max_steps))
-            pl_module.total_steps = total
-            for cfg in trainer.lr_scheduler_configs:
-                sched = cfg.scheduler
-                if hasattr(sched, "lr_lambdas"):
-                    final = pl_module.cfg.lr_final  # the system's own decay, stretched over the new total
-                    sched.lr_lambdas = [lambda s, T=total, f=final: f ** min(s / T, 1.0)] * len(sched.lr_lambdas)
+            pl_module.total_steps = total  # the system's LR decay (lr_factor) and NeuS anneal follow it
 
         def _record(self, trainer, pl_module, t: float, final: bool) -> None:
             e0 = time.perf_counter()

@@ -91,32 +91,38 @@ class OccupancyGrid(nn.Module):
             self._padded_cache[name], self._padded_version[name] = pad.reshape(-1), version
         return self._padded_cache[name]
 
-    def _lookup(self, u: Tensor, name: str = "occupied") -> Tensor:
-        """Buffer ``name`` at grid coordinates ``u`` [...,3] (cell units, offset by the border): [...]."""
+    def _flat(self, u: Tensor) -> Tensor:
+        """Flat index into :meth:`_padded` of grid coordinates ``u`` [...,3] (cell units, offset by the border)."""
         r2 = float(self.resolution + 2)
         u = u.clamp_(0.0, r2 - 0.5).floor_()
         if r2**3 <= 2**24:  # the flat index is exact in float32: one matmul instead of integer arithmetic
-            flat = (u @ torch.tensor([r2 * r2, r2, 1.0], device=u.device)).long()
-        else:
-            ijk = u.long()
-            flat = (ijk[..., 0] * int(r2) + ijk[..., 1]) * int(r2) + ijk[..., 2]
-        return self._padded(name)[flat]
+            return (u @ torch.tensor([r2 * r2, r2, 1.0], device=u.device)).long()
+        ijk = u.long()
+        return (ijk[..., 0] * int(r2) + ijk[..., 1]) * int(r2) + ijk[..., 2]
 
     @torch.no_grad()
     def query(self, x: Tensor) -> Tensor:
         """Occupancy (nearest cell) of points x [N,3] -> bool [N]; points outside the box are empty."""
         scale = self.resolution / (2.0 * self.bound)
-        return self._lookup((x.float() + self.bound) * scale + 1.0)
+        return self.at(self._flat((x.float() + self.bound) * scale + 1.0))
 
     @torch.no_grad()
-    def query_rays(self, rays_o: Tensor, rays_d: Tensor, t: Tensor, name: str = "occupied") -> Tensor:
-        """Occupancy at ``rays_o + t rays_d`` for ray parameters ``t`` [R,M] -> bool [R,M] (as :meth:`query`,
-        without materialising the points in world units); ``name="score"``: the cells' scores, float [R,M]
-        (0 outside the box)."""
+    def ray_cells(self, rays_o: Tensor, rays_d: Tensor, t: Tensor) -> Tensor:
+        """The cells of ``rays_o + t rays_d`` for ray parameters ``t`` [R,M] -> index [R,M] for :meth:`at`
+        (without materialising the points in world units)."""
         scale = self.resolution / (2.0 * self.bound)
         u0 = (rays_o.float() + self.bound) * scale + 1.0
-        u = torch.addcmul(u0[:, None, :], (rays_d.float() * scale)[:, None, :], t.float()[..., None])
-        return self._lookup(u, name)
+        return self._flat(torch.addcmul(u0[:, None, :], (rays_d.float() * scale)[:, None, :], t.float()[..., None]))
+
+    def at(self, cells: Tensor, name: str = "occupied") -> Tensor:
+        """Buffer ``name`` at the cells of :meth:`ray_cells`: ``occupied`` bool, or ``score`` float (0 outside
+        the box)."""
+        return self._padded(name)[cells]
+
+    @torch.no_grad()
+    def query_rays(self, rays_o: Tensor, rays_d: Tensor, t: Tensor) -> Tensor:
+        """Occupancy at ``rays_o + t rays_d`` for ray parameters ``t`` [R,M] -> bool [R,M] (as :meth:`query`)."""
+        return self.at(self.ray_cells(rays_o, rays_d, t))
 
     def _cell_points(self, idx: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
         r = self.resolution

@@ -193,8 +193,9 @@ def _proposal_mass(rays_o: Tensor, rays_d: Tensor, coarse: Tensor, occupancy: "O
     cells = widths * rays_d.float().norm(dim=-1, keepdim=True) / occupancy.cell_size  # bin length in cells
     reach = torch.where(cells[:, :1] > 0, torch.ceil(float(dilate) / cells[:, :1].clamp_min(1e-6)), 0.0)
     reach = reach.clamp(max=M // 4).long()  # [R,1]: the dilation in bins
-    occ = _dilate(occupancy.query_rays(rays_o, rays_d, mids).float(), reach)
-    score = occupancy.query_rays(rays_o, rays_d, mids, name="score").float().clamp(0.0, 1.0 - 1e-6)
+    cells_hit = occupancy.ray_cells(rays_o, rays_d, mids)
+    occ = _dilate(occupancy.at(cells_hit).float(), reach)
+    score = occupancy.at(cells_hit, "score").float().clamp(0.0, 1.0 - 1e-6)
     log_clear = torch.log1p(-score) * cells  # log(1 - a_i)
     # T_i^(1/4) a_i: the scores overrate opacity (the most opaque point of a cell), so the plain T_i ends
     # rays early (grazing rays through a rim, seen in tests); the tempered T keeps samples along them

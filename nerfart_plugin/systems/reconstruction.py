@@ -121,11 +121,13 @@ class ReconstructionSystem(RenderSystem):
 
     def configure_optimizers(self) -> Any:
         opt = torch.optim.Adam(param_groups(self.renderer, self.cfg.lr, self.cfg.lr_mlp), betas=(0.9, 0.99), eps=1e-15)
-        total = max(1, self.total_steps)
-        # exponential decay to reconstruct.lr_final of the initial rate over the run
-        final = self.cfg.lr_final
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: final ** min(s / total, 1.0))
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: self.lr_factor(s))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+
+    def lr_factor(self, step: int) -> float:
+        """Multiplier of both Adam rates at ``step``: exponential decay to ``reconstruct.lr_final`` at
+        :attr:`total_steps`, read at each step (a caller that re-estimates the run's length stretches it)."""
+        return self.cfg.lr_final ** min(step / max(1, self.total_steps), 1.0)
 
     # ------------------------------------------------------------------ validation
     def validation_step(self, batch: dict[str, Any], batch_idx: int) -> None:
