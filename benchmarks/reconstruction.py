@@ -179,15 +179,17 @@ def train_one(scene, overrides: list[str], budget: float, checkpoints: list[floa
     fit = train_steps(system, int(max_steps), ctx.device, ctx.cfg.trainer, callbacks=[cb])
     wall = time.perf_counter() - w0
     final = cb.records[-1] if cb.records else {}
-    return {"records": cb.records, "final": final, "steps": fit.steps,
+    return {"records": cb.records, "final": final, "steps": fit.steps, "setup": ctx.setup.to_dict(),
             "train_seconds": final.get("time", float("nan")), "eval_seconds": cb.eval_seconds, "wall_seconds": wall,
             "sec_per_step": final.get("time", float("nan")) / max(1, fit.steps), "views": len(views)}
 
 
 # --------------------------------------------------------------------------- report
 def first_reaching(records: list[dict], metric: str, target: float) -> Optional[float]:
+    """Training seconds at which an intermediate (one-view) checkpoint first reached ``target``; the final
+    all-view evaluation is not one of them."""
     for r in records:
-        if r.get(metric, -math.inf) >= target:
+        if not r.get("final") and r.get(metric, -math.inf) >= target:
             return float(r["time"])
     return None
 
@@ -262,14 +264,28 @@ def plot(results: dict, specs: dict, path: Path) -> None:
 def _defaults_text() -> str:
     """The sampling settings of the default config, as composed now (not hard-coded)."""
     c = common.compose([])
-    return (f"{c['encoding']['name']} encoding, {c['render']['num_samples']} samples/ray, occupancy grid "
-            f"{c['render']['occupancy']['resolution']}^3 where the scene has one (NDC captures: none, uniform samples), "
-            f"{c['reconstruct']['batch_rays']} rays/step")
+    enc = c["encoding"]
+    res = enc.get("resolution")
+    res_text = (f"side chosen per scene, about {enc.get('cell_pixels')} image px per cell" if res == "auto"
+                else f"side {res}")
+    return (f"{enc['name']} encoding ({res_text}), {c['render']['num_samples']} samples/ray, occupancy grid "
+            f"{c['render']['occupancy']['resolution']}^3 where the scene setup keeps one, sampling "
+            f"{c['render']['occupancy']['sampling']}, {c['reconstruct']['batch_rays']} rays/step; each run's "
+            "scene setup is listed below the table")
+
+
+def _setup_text(setup: dict) -> list[str]:
+    """The decided sizes and sampling of one run's scene setup, as short phrases."""
+    grid = setup.get("grid_resolution")
+    occ = setup.get("occupancy_resolution", 0)
+    return [f"grid encoding side {grid if grid else 'as configured'}",
+            f"occupancy grid {occ}^3, {setup.get('occupancy_sampling')} sampling" if occ else "no occupancy grid, "
+            "uniform samples", f"{setup.get('num_samples')} samples/ray"]
 
 
 def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str], info: dict, fig: Optional[Path],
-           out: Path, extra: list[str]) -> str:
-    body = [
+           out: Path, extra: list[str], note: str = "") -> str:
+    body = ([f"> Note on this run: {note}", ""] if note else []) + [
         "Held-out PSNR versus training wall time, one backbone at a time, default config (preset balanced: "
         + _defaults_text() + (", plus " + " ".join(extra) if extra else "")
         + "). Time is training only: the held-out evaluations at the checkpoints are excluded. "
@@ -295,6 +311,10 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
     body += common.md_table(["scene", "backbone", "train time (s)", "steps", "s/step", "PSNR (dB)",
                              "masked PSNR (dB)", "SSIM", "a one-view checkpoint >= target at (s)", "eval time (s)"], rows,
                             "ll" + "r" * 8)
+    setups = [f"- {scene} / {bb}: " + "; ".join(_setup_text(r["setup"]))
+              for scene, per in results.items() for bb, r in per.items() if r.get("setup")]
+    if setups:
+        body += ["", "Scene setup of each run (systems/scene_setup.py):", "", *setups]
     body += ["", "Target metric per scene: " + ", ".join(
         f"{k} = {'masked PSNR' if v['metric'] == 'psnr_masked' else 'PSNR'} >= {v['target']:.0f} dB"
         for k, v in specs.items() if k in results) + ".", ""]
@@ -405,7 +425,7 @@ def report_only(args: argparse.Namespace) -> int:
     fig = figs / f"{run_args.section}.png"
     plot(saved["results"], specs, fig)
     text = report(saved["results"], specs, run_args, saved["argv"], saved["info"], fig, out,
-                  list(saved["args"].get("override") or []))
+                  list(saved["args"].get("override") or []), saved.get("note", ""))
     common.finish(run_args, run_args.section, text)
     return 0
 

@@ -99,7 +99,8 @@ class SceneContext:
 
         run, plain = typed(cfg)
         return replace(self, cfg=run, plain=plain, setup=decide_setup(self.scene, run.render, ndc=self.ndc,
-                                                                      opacity_scores=occupancy_scores_opacity(run.backbone)))
+                                                                      opacity_scores=occupancy_scores_opacity(run.backbone),
+                                                                      encoding_cfg=run.encoding))
 
 
 def build_scene(cfg: Any) -> SceneContext:
@@ -117,7 +118,8 @@ def build_scene(cfg: Any) -> SceneContext:
     scene = dm.load()
     for note in scene.notes:
         log.info("data: %s", note)
-    setup = decide_setup(scene, run.render, ndc=dm.ndc, opacity_scores=occupancy_scores_opacity(run.backbone))
+    setup = decide_setup(scene, run.render, ndc=dm.ndc, opacity_scores=occupancy_scores_opacity(run.backbone),
+                         encoding_cfg=run.encoding)
     return SceneContext(run, plain, dm, setup, pick_device(run.device), root, list(scene.notes))
 
 

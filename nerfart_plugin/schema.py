@@ -83,8 +83,8 @@ def _checkpoint_every(default: int) -> Any:
 class OccupancyConfig(Section):
     """``render.occupancy``: the occupancy grid for empty-space skipping."""
 
-    enabled: AutoBool = Setting("auto", description="auto: on, except for forward-facing (NDC) captures unless "
-                                "render.occupancy.sampling=weighted | true | false")
+    enabled: AutoBool = Setting("auto", description="auto: on, except for forward-facing (NDC) captures without "
+                                "weighted sampling (an SDF backbone there) | true | false")
     resolution: Int = Setting(64, ge=1, le=256, description="cells per side (shrunk to what the images resolve)",
                               off="render.occupancy.enabled=false turns the grid off")
     update_every: Int = Setting(16, ge=1, le=1_000_000, description="training steps between grid refreshes")
@@ -92,10 +92,16 @@ class OccupancyConfig(Section):
                                off="render.occupancy.enabled=false turns the grid off")
     warmup_steps: Int = Setting(64, ge=0, le=10**9, description="steps during which every cell is re-evaluated")
     sampling: Literal["auto", "occupied", "weighted"] = Setting(
-        "auto", description="where the grid puts a ray's samples: occupied (uniformly over the occupied cells; "
-        "auto) | weighted (density backbones: as dense as the cells' transmittance-weighted opacities, a "
-        "proposal that crowds them at the first surface; fern in 15 min: 23.04 dB with 16 per ray on a 32^3 "
-        "grid vs 22.53 dB at the defaults, README)", off="render.occupancy.enabled=false turns the grid off")
+        "auto", description="where the grid puts a ray's samples: occupied (uniformly over the occupied cells) | "
+        "weighted (density backbones: as dense as the cells' transmittance-weighted opacities, a proposal that "
+        "crowds them at the first surface) | auto: weighted for a density backbone on a forward-facing (NDC) "
+        "capture, whose frustum is nearly all occupied, occupied otherwise (README, BENCHMARKS.md fern)",
+        off="render.occupancy.enabled=false turns the grid off")
+    weighted_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while training "
+                                              "where the grid places them by weight (sampling=weighted): crowded "
+                                              "where rays end, fewer suffice and each step is cheaper (README); "
+                                              "null: render.num_samples",
+                                              off="render.occupancy.sampling=occupied")
     uniform_share: Fraction = Setting(0.2, description="weighted sampling: share of each ray's samples spread "
                                       "uniformly over the occupied cells it crosses (so surfaces the grid "
                                       "underrates still get gradient)",
@@ -810,6 +816,10 @@ def cross_checks(c: dict) -> list[Issue]:
     ns = int(sc.get("num_samples") or n)
     _per_step(issues, "reconstruct.batch_rays", rc["batch_rays"], "render.num_samples", n, MAX_GRAD_SAMPLES,
               "per training step")
+    nw = int(r["occupancy"].get("weighted_samples") or 0)
+    if nw > n:  # weighted sampling (NDC density fields by default) trains on these instead
+        _per_step(issues, "reconstruct.batch_rays", rc["batch_rays"], "render.occupancy.weighted_samples", nw,
+                  MAX_GRAD_SAMPLES, "per training step")
     _per_step(issues, "render.chunk", r["chunk"], "render.num_samples", n, MAX_NOGRAD_SAMPLES, "per chunk")
     _per_step(issues, "stylize.patch_size", sc["patch_size"] ** 2, "stylize.num_samples", ns, MAX_GRAD_SAMPLES,
               "per patch (patch_size^2 rays)")

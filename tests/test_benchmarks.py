@@ -106,6 +106,10 @@ def test_reconstruction_verdict_judges_the_final_figure() -> None:
     assert "volsdf: **NOT MET** (masked PSNR 26.80 dB at 600 s; an intermediate one-view checkpoint first " \
            "reached the target at 480 s)" in lines
     assert "fern >= 24 dB PSNR within 900 s with the fastest backbone (nerf, 0.04 s/step): **MET** (24.50 dB;" in lines
+    # the final all-view evaluation is the verdict, not an intermediate checkpoint that reached the target
+    final_only = {**run, "records": [{"time": 450.0, "psnr": 23.0}, {"time": 900.0, "psnr": 24.5, "final": True}]}
+    lines = "\n".join(mod.verdicts({"fern": {"nerf": final_only}}, specs, 1.0, False))
+    assert "**MET** (24.50 dB)." in lines and "intermediate" not in lines
 
 
 def test_paper_resolution_times_both_precisions() -> None:
@@ -263,3 +267,14 @@ def test_paper_resolution_quick(out: Path, tmp_path: Path, shared_data: Path) ->
     assert any(r.startswith("| whole job |") for r in rows)
     figures = json.loads(raw.read_text())
     assert figures["steps"][0]["floor"] > 0 and figures["job"]["steps"] > 0 and figures["job"]["top5"] is not None
+
+
+def test_step_split_quick(out: Path, shared_data: Path) -> None:
+    """The step-split benchmark times forward, backward and optimizer for both optimizers at each side."""
+    mod = _load("step_split")
+    assert mod.main(["--quick", "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "step_split", "--quick")
+    rows = _table_rows(sec)
+    assert [r.split("|")[1:3] for r in rows] == [[" 16 ", " fused (adam) "], [" 16 ", " plain "],
+                                                 [" 32 ", " fused (adam) "], [" 32 ", " plain "]]
+    assert all(float(r.split("|")[7]) > 0 for r in rows) and "Fused versus plain, same run" in sec

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import logging
 
 import pytest
@@ -223,6 +225,29 @@ def test_encoding_mlp_lr_scale_sets_the_mlp_learning_rate() -> None:
     assert groups == {"grid": pytest.approx(1e-2), "mlp": pytest.approx(4e-3)}
     with pytest.raises(ConfigError, match="mlp_lr_scale"):
         build_field({"name": "neus"}, {**ENCODINGS["frequency"], "mlp_lr_scale": 0})
+
+
+def test_systems_adam_is_fused_on_cpu_and_steps_like_plain_adam() -> None:
+    """Both stages' optimizer (systems.base.adam) takes torch's fused kernel on a CPU and moves the
+    parameters as the plain Adam with the same groups does, step after step (rates per group kept)."""
+    from nerfart_plugin.systems.base import adam, param_groups
+
+    torch.manual_seed(0)
+    a = VolumeRenderer(build_field({"name": "nerf", **SMALL}, ENCODINGS["grid"]))
+    b = copy.deepcopy(a)
+    opt_a = adam(param_groups(a, 1e-2, 4e-3))
+    opt_b = torch.optim.Adam(param_groups(b, 1e-2, 4e-3), betas=(0.9, 0.99), eps=1e-15)
+    assert opt_a.defaults["fused"] and not opt_b.defaults["fused"]
+    x = torch.rand(256, 3) * 2 - 1
+    for _ in range(5):
+        for r, opt in ((a, opt_a), (b, opt_b)):
+            opt.zero_grad()
+            out = r.field(x, torch.nn.functional.normalize(x, dim=-1))
+            (out["sigma"].square().mean() + out["rgb"].mean()).backward()
+            opt.step()
+    for pa, pb in zip(a.parameters(), b.parameters()):
+        assert torch.allclose(pa, pb, atol=1e-6, rtol=1e-5)
+    assert [g["lr"] for g in opt_a.param_groups] == [g["lr"] for g in opt_b.param_groups]
 
 
 def test_sharp_softplus_is_softplus_with_its_gradients_at_the_extremes() -> None:

@@ -64,12 +64,20 @@ def test_every_choice_yields_to_config() -> None:
 
 def test_weighted_sampling_asks_for_the_grid_and_a_density_backbone() -> None:
     """render.occupancy.sampling=weighted turns the grid on in NDC (auto) for a density backbone and is a
-    config error for an SDF backbone; auto samples the occupied cells."""
+    config error for an SDF backbone; auto is weighted for a density backbone in NDC (grid on), occupied
+    elsewhere, and leaves an SDF backbone in NDC without a grid."""
     fern = _scene("forward_facing", False)
     s = decide_setup(fern, _render(occ_sampling="weighted"), ndc=True, opacity_scores=True)
     assert s.occupancy_resolution == 64 and s.occupancy_sampling == "weighted"
-    assert any("sampling=weighted" in r for r in s.reasons)
-    assert decide_setup(fern, _render(), ndc=True, opacity_scores=True).occupancy_resolution == 0
+    assert any("weighted sampling" in r for r in s.reasons)
+    auto = decide_setup(fern, _render(), ndc=True, opacity_scores=True)
+    assert (auto.occupancy_resolution, auto.occupancy_sampling, auto.num_samples) == (64, "weighted", 16)
+    assert any("render.occupancy.weighted_samples" in r for r in auto.reasons)
+    assert decide_setup(fern, _render(occ_weighted_samples=None), ndc=True, opacity_scores=True).num_samples == 32
+    occupied = decide_setup(_scene("object", True), _render(), ndc=False, opacity_scores=True)
+    assert occupied.num_samples == 32  # weighted_samples applies to weighted sampling only
+    assert decide_setup(fern, _render(), ndc=True, opacity_scores=False).occupancy_resolution == 0
+    assert decide_setup(fern, _render(occ_enabled=False), ndc=True, opacity_scores=True).occupancy_resolution == 0
     head = decide_setup(_scene("object", True), _render(), ndc=False, opacity_scores=True)
     assert head.occupancy_sampling == "occupied"
     with pytest.raises(ConfigError, match="needs a density backbone"):
@@ -85,3 +93,35 @@ def test_grid_no_finer_than_the_pixels_resolve() -> None:
 def test_bad_choice_is_a_config_error(key: str, value: Optional[str]) -> None:
     with pytest.raises(ConfigError, match="one of auto, true, false"):
         decide_setup(_scene("object", True), _render(**{key: value}), ndc=False)
+
+
+@pytest.mark.parametrize("capture,ndc,size,cell_pixels,side", [
+    ("object", False, 128, 2.0, 128),  # 128 px focal at 3 units: ~43 px per unit -> below the floor of 128
+    ("object", False, 900, 2.0, 320),  # 300 px per unit x 2 units / 2 px -> 300 cells -> 320
+    ("forward_facing", True, 504, 2.0, 384),  # fern images_8: 252 px per NDC unit over the 3-unit box -> 378 -> 384
+    ("forward_facing", True, 504, 3.0, 256),
+    ("forward_facing", True, 4032, 2.0, 512),  # a full-size phone photo: capped at 512
+])
+def test_auto_grid_resolution_follows_the_pixels(capture: str, ndc: bool, size: int, cell_pixels: float,
+                                                 side: int) -> None:
+    """encoding.resolution=auto: the grid side gives a cell about cell_pixels image pixels where the scene is,
+    a multiple of 32 in [128, 512], with its reason; any other resolution is the encoding's own (None)."""
+    s = decide_setup(_scene(capture, not ndc, size=size), _render(), ndc=ndc,
+                     encoding_cfg={"name": "grid", "resolution": "auto", "cell_pixels": cell_pixels})
+    assert s.grid_resolution == side
+    assert any(f"grid encoding {side} cells per side" in r for r in s.reasons)
+    assert decide_setup(_scene(capture, not ndc, size=size), _render(), ndc=ndc,
+                        encoding_cfg={"name": "grid", "resolution": 96}).grid_resolution is None
+
+
+def test_auto_grid_resolution_reaches_the_field() -> None:
+    """build_renderer builds the grid the setup decided; an encoding built with 'auto' outside a scene setup
+    takes the rule's floor, 128."""
+    from nerfart_plugin.fields import build_field
+    from nerfart_plugin.systems.base import build_renderer
+
+    enc = {"name": "grid", "resolution": "auto", "n_components": 2, "out_features": 8}
+    s = decide_setup(_scene("forward_facing", False, size=504), _render(), ndc=True, encoding_cfg=enc)
+    r = build_renderer({"name": "nerf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(), s)
+    assert r.field.encoding.resolutions == [256] and tuple(r.field.encoding.planes[0].shape) == (3, 2, 256, 256)
+    assert build_field({"name": "nerf"}, enc).encoding.resolutions == [128]

@@ -7,7 +7,8 @@ Position encodings take points x [N,3] in world units inside [-bound, bound]^3
 
 from __future__ import annotations
 
-from typing import Annotated, Optional, Union
+import math
+from typing import Annotated, Literal, Optional, Union
 
 import torch
 import torch.nn as nn
@@ -18,7 +19,7 @@ from nerfart_plugin.config_types import Float, Int, Limits
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.registry import register
 
-__all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "build_encoding"]
+__all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "auto_grid_resolution", "build_encoding"]
 
 
 class Encoding(nn.Module):
@@ -84,6 +85,19 @@ class FrequencyEncoding(Encoding):
 GridSide = Annotated[Int, Limits(ge=2, le=2048)]
 #: planes + lines of all levels: 2^27 float32 = 512 MiB (x4 with Adam's moments and the gradient)
 MAX_GRID_PARAMS = 2**27
+#: ``resolution: auto`` picks a side in [AUTO_GRID_MIN, AUTO_GRID_MAX], a multiple of AUTO_GRID_STEP
+AUTO_GRID_MIN, AUTO_GRID_MAX, AUTO_GRID_STEP = 128, 512, 32
+
+
+def auto_grid_resolution(pixels_per_unit: float, bound: float, cell_pixels: float) -> int:
+    """Grid side for ``encoding.resolution=auto``: the cells across the field box ``[-bound, bound]``
+    such that one cell spans about ``cell_pixels`` image pixels where the scene is
+    (``pixels_per_unit``: image pixels per unit of field coordinates there), rounded up to a multiple
+    of 32 and kept in [128, 512]: 128 is the side every small-image default was measured at, 512 keeps
+    the planes under 7 M parameters."""
+    cells = 2.0 * float(bound) * float(pixels_per_unit) / float(cell_pixels)
+    side = AUTO_GRID_STEP * math.ceil(cells / AUTO_GRID_STEP - 1e-9)
+    return int(min(AUTO_GRID_MAX, max(AUTO_GRID_MIN, side)))
 
 
 @register("encoding", "grid")
@@ -97,23 +111,30 @@ class TensorVMGridEncoding(Encoding):
     levels concatenated, then optionally projected by a bias-free linear basis
     (TensoRF's "basis matrix") to ``out_features``.
 
-    Config: ``resolution`` (int or list of ints for multi-resolution, default
-    128), ``n_components`` (int, default 8), ``out_features`` (int or None =
-    no projection, default 32), ``init_std`` (default 0.1; planes/lines are
-    N(0, init_std) so products start small but non-zero), ``tv_weight``
-    (default 0.0: total-variation regularizer returned by ``regularizers()``).
+    Config: ``resolution`` (int, list of ints for multi-resolution, or ``auto``,
+    the default: decided per scene by the scene setup, :func:`auto_grid_resolution`,
+    so that a cell spans about ``cell_pixels`` pixels of the training images, default
+    3; built without a scene setup, 128, the rule's floor), ``n_components`` (int, default 8),
+    ``out_features`` (int or None = no projection, default 32), ``init_std``
+    (default 0.1; planes/lines are N(0, init_std) so products start small but
+    non-zero), ``tv_weight`` (default 0.0: total-variation regularizer returned by
+    ``regularizers()``).
     """
 
     def __init__(
         self,
         bound: float = 1.0,
-        resolution: Union[GridSide, Annotated[list[GridSide], Limits(min_length=1, max_length=16)]] = 128,
+        resolution: Union[Literal["auto"], GridSide, Annotated[list[GridSide], Limits(min_length=1, max_length=16)]] = "auto",
         n_components: Annotated[Int, Limits(ge=1, le=256)] = 8,
         out_features: Optional[Annotated[Int, Limits(ge=1, le=4096)]] = 32,
         init_std: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
         tv_weight: Annotated[Float, Limits(ge=0.0, le=1e6)] = 0.0,
+        cell_pixels: Annotated[Float, Limits(ge=0.25, le=64.0)] = 3.0,
     ) -> None:
         super().__init__()
+        if resolution == "auto":  # built without a scene setup (which decides it): the rule's floor
+            resolution = AUTO_GRID_MIN
+        self.cell_pixels = float(cell_pixels)
         res_list = [int(resolution)] if isinstance(resolution, (int, float)) else [int(r) for r in resolution]
         if not res_list or min(res_list) < 2 or n_components < 1:
             raise ConfigError(

@@ -21,10 +21,14 @@ def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderCon
     """Field (backbone x encoding) + optional background model + occupancy grid, wrapped in the renderer.
 
     ``render_cfg``: the ``render`` section (a :class:`RenderConfig`, or a dict: what it leaves out
-    takes the schema's defaults); ``setup`` decides the box, background, grid size and samples.
+    takes the schema's defaults); ``setup`` decides the box, background, grid sizes (the occupancy grid's and,
+    for ``encoding.resolution=auto``, the grid encoding's) and samples.
     """
     rc = section(RenderConfig, render_cfg)
-    field = build_field(dict(backbone_cfg), dict(encoding_cfg), bound=setup.bound)
+    encoding = dict(encoding_cfg)
+    if encoding.get("resolution") == "auto" and setup.grid_resolution is not None:
+        encoding["resolution"] = setup.grid_resolution  # decided from the scene (decide_setup)
+    field = build_field(dict(backbone_cfg), encoding, bound=setup.bound)
     background = build_background({"name": "envmap"}) if setup.background_model else None
     occupancy: Optional[OccupancyGrid] = None
     if setup.occupancy_resolution > 0:
@@ -58,6 +62,20 @@ def param_groups(renderer: VolumeRenderer, lr_grid: float, lr_mlp: float, geomet
     if mlp_params:
         groups.append({"params": mlp_params, "lr": lr_mlp, "name": "mlp"})
     return groups
+
+
+def adam(groups: list[dict]) -> torch.optim.Adam:
+    """Adam on ``groups`` (:func:`param_groups`) with the systems' betas (0.9, 0.99) and eps 1e-15, using
+    torch's fused kernel (one pass over each tensor instead of a dozen) where it covers the parameters'
+    device and dtype. On a CPU that is what makes a large grid affordable: the optimizer's share of a
+    step grows with the grid side (``benchmarks/step_split.py``, fused versus plain)."""
+    params = [p for g in groups for p in g["params"]]
+    fused = bool(params) and all(p.is_floating_point() and p.device.type in _FUSED_ADAM_DEVICES for p in params)
+    return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=fused or None)
+
+
+#: devices with a fused Adam kernel (torch >= 2.4)
+_FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps")
 
 
 def to_device(batch: dict[str, Any], device: torch.device) -> dict[str, Any]:

@@ -13,7 +13,7 @@ import torch
 from nerfart_plugin.evaluation import view_metrics
 from nerfart_plugin.losses import psnr, reconstruction_loss, silhouette_loss
 from nerfart_plugin.schema import ReconstructConfig, RenderConfig, section
-from nerfart_plugin.systems.base import RenderSystem, param_groups, step_seed, to_device
+from nerfart_plugin.systems.base import RenderSystem, adam, param_groups, step_seed, to_device
 from nerfart_plugin.systems.loss_terms import (LossTerm, compute, regularizer_terms, regularizer_weights, weighted_sum,
                                                weights_of)
 from nerfart_plugin.systems.scene_setup import SceneSetup
@@ -120,7 +120,7 @@ class ReconstructionSystem(RenderSystem):
             self.log(f"train/{k}", v)
 
     def configure_optimizers(self) -> Any:
-        opt = torch.optim.Adam(param_groups(self.renderer, self.cfg.lr, self.cfg.lr_mlp), betas=(0.9, 0.99), eps=1e-15)
+        opt = adam(param_groups(self.renderer, self.cfg.lr, self.cfg.lr_mlp))
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: self.lr_factor(s))
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 

@@ -33,6 +33,8 @@ class SceneSetup:
         num_samples: samples per ray.
         has_masks: foreground masks are available (mask loss on).
         reasons: why each choice was made (logged, written to metrics.json).
+        grid_resolution: cells per side of the grid encoding where ``encoding.resolution=auto``
+            (None: the encoding's own resolution).
     """
 
     capture: str
@@ -45,17 +47,31 @@ class SceneSetup:
     has_masks: bool
     reasons: list[str] = field(default_factory=list)
     occupancy_sampling: str = "occupied"
+    grid_resolution: Optional[int] = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
 
+def pixels_per_unit(scene: Scene, ndc: bool) -> float:
+    """Image pixels per unit of field coordinates where the scene is: in NDC, the long image side over the
+    2 units it spans; otherwise the median over the training cameras of focal length (px) over the
+    camera's distance to the origin, the centre of the normalized scene."""
+    if ndc:
+        return max(scene.height, scene.width) / 2.0
+    ids = scene.train_ids or list(range(scene.num_images))
+    dist = scene.c2w[ids, :, 3].norm(dim=-1).clamp_min(1e-6)
+    focal = scene.K[ids, 0, 0].abs()
+    return float((focal / dist).median())
+
+
 def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: bool,
-                 opacity_scores: bool = False) -> SceneSetup:
+                 opacity_scores: bool = False, encoding_cfg: Optional[dict[str, Any]] = None) -> SceneSetup:
     """Pick extent/background/sampling for ``scene`` from its capture type and resolution
     (``render_cfg``: the ``render`` section, typed or as a dict of its keys; ``opacity_scores``: the
     field's occupancy grid scores cells by opacity (density fields, ``backbone=nerf``;
-    :func:`~nerfart_plugin.fields.occupancy_scores_opacity`))."""
+    :func:`~nerfart_plugin.fields.occupancy_scores_opacity`); ``encoding_cfg``: the ``encoding``
+    section, whose ``resolution: auto`` is decided here)."""
     rc = section(RenderConfig, render_cfg)
     reasons: list[str] = []
     has_masks = scene.masks is not None
@@ -85,7 +101,11 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
         reasons.append("field box [-1,1]^3: unit sphere of the normalized scene")
 
     occ = rc.occupancy
-    sampling = "occupied" if occ.sampling == "auto" else occ.sampling
+    sampling = occ.sampling
+    if sampling == "auto":
+        # In NDC the occupied cells are nearly all of them: only a density field's opacities (a proposal)
+        # tell a ray where to put its samples. Elsewhere the occupied cells are a tight shell already.
+        sampling = "weighted" if ndc and opacity_scores else "occupied"
     if sampling == "weighted" and not opacity_scores:
         raise ConfigError("render.occupancy.sampling=weighted needs a density backbone (backbone=nerf): an SDF "
                           "backbone's grid marks a shell around its surface, not opacities. Use "
@@ -98,8 +118,8 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
         # Weighted sampling asks for the grid (it proposes where rays end), NDC or not.
         enabled = not ndc or sampling == "weighted"
         if ndc and enabled:
-            reasons.append("occupancy grid on in NDC for render.occupancy.sampling=weighted: the cells' "
-                           "transmittance-weighted opacities place the samples where rays end")
+            reasons.append("occupancy grid on in NDC for weighted sampling (a density backbone's default there): "
+                           "the cells' transmittance-weighted opacities place the samples where rays end")
         elif ndc:
             reasons.append("occupancy grid off: an NDC frustum is nearly all occupied, nothing to skip "
                            "(render.occupancy.enabled=true forces it)")
@@ -115,8 +135,28 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
     elif occ.enabled is False:
         reasons.append("occupancy grid off (render.occupancy.enabled=false): uniform stratified sampling")
     num_samples = rc.num_samples
+    if occ_res and sampling == "weighted" and occ.weighted_samples:
+        num_samples = occ.weighted_samples
+        reasons.append(f"{num_samples} samples per ray (render.occupancy.weighted_samples): weighted sampling "
+                       "crowds them where rays end")
+    grid_res = _grid_resolution(scene, ndc, bound, encoding_cfg or {}, reasons)
     setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,
-                       has_masks, reasons, sampling if occ_res else "occupied")
+                       has_masks, reasons, sampling if occ_res else "occupied", grid_res)
     for r in reasons:
         log.info("scene setup: %s", r)
     return setup
+
+
+def _grid_resolution(scene: Scene, ndc: bool, bound: float, encoding_cfg: dict[str, Any],
+                     reasons: list[str]) -> Optional[int]:
+    """The grid encoding's side for ``encoding.resolution=auto`` (None for any other setting)."""
+    if encoding_cfg.get("resolution") != "auto":
+        return None
+    from nerfart_plugin.fields.encodings import auto_grid_resolution
+
+    ppu = pixels_per_unit(scene, ndc)
+    cell_pixels = float(encoding_cfg.get("cell_pixels", 3.0))
+    side = auto_grid_resolution(ppu, bound, cell_pixels)
+    reasons.append(f"grid encoding {side} cells per side: about {cell_pixels:g} image px per cell at "
+                   f"{ppu:.0f} px per unit over the {2 * bound:g}-unit box (encoding.resolution=auto; 128..512)")
+    return side

@@ -50,7 +50,7 @@ from nerfart_plugin.losses import (
 )
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 from nerfart_plugin.schema import ExperimentConfig, RenderConfig, StylizeConfig, section
-from nerfart_plugin.systems.base import RenderSystem, build_renderer, param_groups, step_seed, to_device
+from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed, to_device
 from nerfart_plugin.systems.callbacks import check_finite_grads
 from nerfart_plugin.systems.loss_terms import LossTerm, compute, regularizer_weights, weighted_sum, weights_of
 from nerfart_plugin.systems.scene_setup import SceneSetup
@@ -357,7 +357,7 @@ class StylizationSystem(RenderSystem):
 
     def configure_optimizers(self) -> Any:
         groups = param_groups(self.renderer, self.cfg.lr, self.cfg.lr_mlp, geometry=not self.freeze_geometry)
-        return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15)
+        return adam(groups)
 
     # ------------------------------------------------------------------ rendering for outputs
     @torch.no_grad()
