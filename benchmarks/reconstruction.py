@@ -270,8 +270,7 @@ def _defaults_text() -> str:
                 else f"side {res}")
     return (f"{enc['name']} encoding ({res_text}), {c['render']['num_samples']} samples/ray, occupancy grid "
             f"{c['render']['occupancy']['resolution']}^3 where the scene setup keeps one, sampling "
-            f"{c['render']['occupancy']['sampling']}, {c['reconstruct']['batch_rays']} rays/step; each run's "
-            "scene setup is listed below the table")
+            f"{c['render']['occupancy']['sampling']}, {c['reconstruct']['batch_rays']} rays/step")
 
 
 def _setup_text(setup: dict) -> list[str]:
@@ -288,7 +287,8 @@ def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str]
     body = ([f"> Note on this run: {note}", ""] if note else []) + [
         "Held-out PSNR versus training wall time, one backbone at a time, default config (preset balanced: "
         + _defaults_text() + (", plus " + " ".join(extra) if extra else "")
-        + "). Time is training only: the held-out evaluations at the checkpoints are excluded. "
+        + "; the scene setup decides the rest per scene, as listed below the table where the run recorded it). "
+        "Time is training only: the held-out evaluations at the checkpoints are excluded. "
         f"Intermediate checkpoints (curves) render {'all' if args.eval_views <= 0 else args.eval_views} held-out "
         "view(s), on every N-th pixel row and column ("
         + ", ".join(f"{k}: N={v.get('eval_stride_used', v['eval_stride'])}" for k, v in specs.items() if k in results)
