@@ -87,6 +87,8 @@ GridSide = Annotated[Int, Limits(ge=2, le=2048)]
 MAX_GRID_PARAMS = 2**27
 #: ``resolution: auto`` picks a side in [AUTO_GRID_MIN, AUTO_GRID_MAX], a multiple of AUTO_GRID_STEP
 AUTO_GRID_MIN, AUTO_GRID_MAX, AUTO_GRID_STEP = 128, 512, 32
+#: ``cell_pixels`` default: image pixels per cell that ``resolution: auto`` aims at
+AUTO_CELL_PIXELS = 3.0
 
 
 def auto_grid_resolution(pixels_per_unit: float, bound: float, cell_pixels: float) -> int:
@@ -129,12 +131,11 @@ class TensorVMGridEncoding(Encoding):
         out_features: Optional[Annotated[Int, Limits(ge=1, le=4096)]] = 32,
         init_std: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
         tv_weight: Annotated[Float, Limits(ge=0.0, le=1e6)] = 0.0,
-        cell_pixels: Annotated[Float, Limits(ge=0.25, le=64.0)] = 3.0,
+        cell_pixels: Annotated[Float, Limits(ge=0.25, le=64.0)] = AUTO_CELL_PIXELS,
     ) -> None:
         super().__init__()
-        if resolution == "auto":  # built without a scene setup (which decides it): the rule's floor
+        if resolution == "auto":  # built without a scene setup (which decides it and reads cell_pixels): the floor
             resolution = AUTO_GRID_MIN
-        self.cell_pixels = float(cell_pixels)
         res_list = [int(resolution)] if isinstance(resolution, (int, float)) else [int(r) for r in resolution]
         if not res_list or min(res_list) < 2 or n_components < 1:
             raise ConfigError(

@@ -64,6 +64,10 @@ def param_groups(renderer: VolumeRenderer, lr_grid: float, lr_mlp: float, geomet
     return groups
 
 
+#: devices with a fused Adam kernel (torch >= 2.4)
+_FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps")
+
+
 def adam(groups: list[dict]) -> torch.optim.Adam:
     """Adam on ``groups`` (:func:`param_groups`) with the systems' betas (0.9, 0.99) and eps 1e-15, using
     torch's fused kernel (one pass over each tensor instead of a dozen) where it covers the parameters'
@@ -72,10 +76,6 @@ def adam(groups: list[dict]) -> torch.optim.Adam:
     params = [p for g in groups for p in g["params"]]
     fused = bool(params) and all(p.is_floating_point() and p.device.type in _FUSED_ADAM_DEVICES for p in params)
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=fused or None)
-
-
-#: devices with a fused Adam kernel (torch >= 2.4)
-_FUSED_ADAM_DEVICES = ("cpu", "cuda", "mps")
 
 
 def to_device(batch: dict[str, Any], device: torch.device) -> dict[str, Any]:

@@ -152,10 +152,10 @@ def _grid_resolution(scene: Scene, ndc: bool, bound: float, encoding_cfg: dict[s
     """The grid encoding's side for ``encoding.resolution=auto`` (None for any other setting)."""
     if encoding_cfg.get("resolution") != "auto":
         return None
-    from nerfart_plugin.fields.encodings import auto_grid_resolution
+    from nerfart_plugin.fields.encodings import AUTO_CELL_PIXELS, auto_grid_resolution
 
     ppu = pixels_per_unit(scene, ndc)
-    cell_pixels = float(encoding_cfg.get("cell_pixels", 3.0))
+    cell_pixels = float(encoding_cfg.get("cell_pixels", AUTO_CELL_PIXELS))
     side = auto_grid_resolution(ppu, bound, cell_pixels)
     reasons.append(f"grid encoding {side} cells per side: about {cell_pixels:g} image px per cell at "
                    f"{ppu:.0f} px per unit over the {2 * bound:g}-unit box (encoding.resolution=auto; 128..512)")
