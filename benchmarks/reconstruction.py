@@ -268,6 +268,10 @@ def _defaults_text() -> str:
     res = enc.get("resolution")
     res_text = (f"side chosen per scene, about {enc.get('cell_pixels')} image px per cell" if res == "auto"
                 else f"side {res}")
+    if enc.get("levels") == "auto":
+        res_text += ", levels chosen per backbone"
+    elif enc.get("levels") not in (None, 1):
+        res_text += f", {enc.get('levels')} levels"
     return (f"{enc['name']} encoding ({res_text}), {c['render']['num_samples']} samples/ray, occupancy grid "
             f"{c['render']['occupancy']['resolution']}^3 where the scene setup keeps one, sampling "
             f"{c['render']['occupancy']['sampling']}, {c['reconstruct']['batch_rays']} rays/step")
@@ -275,9 +279,10 @@ def _defaults_text() -> str:
 
 def _setup_text(setup: dict) -> list[str]:
     """The decided sizes and sampling of one run's scene setup, as short phrases."""
-    grid = setup.get("grid_resolution")
+    grid, levels = setup.get("grid_resolution"), setup.get("grid_levels")
     occ = setup.get("occupancy_resolution", 0)
-    return [f"grid encoding side {grid if grid else 'as configured'}",
+    return [f"grid encoding side {grid if grid else 'as configured'}"
+            + (f", {levels} levels" if levels and levels > 1 else ""),
             f"occupancy grid {occ}^3, {setup.get('occupancy_sampling')} sampling" if occ else "no occupancy grid, "
             "uniform samples", f"{setup.get('num_samples')} samples/ray"]
 

@@ -120,7 +120,7 @@ class RenderConfig(Section):
     chunk: Int = Setting(4096, ge=1, le=2**20, description="rays per chunk of no-grad full-view rendering "
                          "(validation, evaluation, export renders; memory only)", off=_CHUNK_OFF,
                          changes_results=False)
-    view_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray of full views rendered "
+    view_samples: Optional[Int] = Setting(24, ge=1, le=1024, description="samples per ray of full views rendered "
                                           "without grad (validation, evaluation, videos, stage=render) where an "
                                           "occupancy grid places them; null, or a scene without a grid (NDC "
                                           "captures): render.num_samples", changes_results=False)

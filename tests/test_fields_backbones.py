@@ -12,7 +12,7 @@ import torch
 from nerfart_plugin import registry
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields import EnvironmentMap, OccupancyGrid, build_background, build_field
-from nerfart_plugin.fields.encodings import FrequencyEncoding, SHEncoding, TensorVMGridEncoding
+from nerfart_plugin.fields.encodings import FrequencyEncoding, SHEncoding, TensorVMGridEncoding, level_sides
 from nerfart_plugin.rendering import VolumeRenderer
 
 SMALL = {"hidden_dim": 16, "color_hidden_dim": 16, "feature_dim": 7}
@@ -146,6 +146,18 @@ def test_encodings_shapes() -> None:
     assert sh(d).shape == (20, 16)
     tv = TensorVMGridEncoding(resolution=8, n_components=2, tv_weight=1.0).regularizers()["grid_tv"]
     assert tv > 0
+
+
+def test_grid_levels_halve_the_side_down_from_the_finest() -> None:
+    """encoding.levels: one side (an int, or auto as the scene setup resolves it) becomes the finest of
+    that many levels, each coarser one half the side; a list of sides that disagrees with levels is refused."""
+    assert level_sides(128, 3) == [32, 64, 128] and level_sides(256, 1) == [256] and level_sides(4, 3) == [2, 2, 4]
+    ge = TensorVMGridEncoding(resolution=16, levels=3, n_components=2, out_features=None)
+    assert ge.resolutions == [4, 8, 16] and ge.n_output_dims == 3 * 2 * 3
+    assert [p.shape[-1] for p in ge.planes] == [4, 8, 16]
+    assert TensorVMGridEncoding(resolution=[8, 16], levels=2).resolutions == [8, 16]
+    with pytest.raises(ConfigError, match="encoding.levels"):
+        TensorVMGridEncoding(resolution=[8, 16], levels=3)
 
 
 def test_bad_configs_raise_config_error() -> None:

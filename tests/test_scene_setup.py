@@ -125,3 +125,34 @@ def test_auto_grid_resolution_reaches_the_field() -> None:
     r = build_renderer({"name": "nerf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(), s)
     assert r.field.encoding.resolutions == [256] and tuple(r.field.encoding.planes[0].shape) == (3, 2, 256, 256)
     assert build_field({"name": "nerf"}, enc).encoding.resolutions == [128]
+
+
+@pytest.mark.parametrize("opacity_scores,resolution,levels,expected", [
+    (False, "auto", "auto", 3),  # an SDF field: three levels
+    (True, "auto", "auto", 1),  # a density field: one
+    (False, 64, "auto", 3),  # an int side is the finest level too
+    (False, [16, 64], "auto", None),  # a list gives its levels itself
+    (False, "auto", 2, None),  # an explicit count is the encoding's own
+])
+def test_auto_grid_levels_follow_the_backbone(opacity_scores: bool, resolution, levels, expected) -> None:
+    """encoding.levels=auto: SDF fields get AUTO_SDF_LEVELS levels, density fields one, with the reason."""
+    s = decide_setup(_scene("object", True), _render(), ndc=False, opacity_scores=opacity_scores,
+                     encoding_cfg={"name": "grid", "resolution": resolution, "levels": levels})
+    assert s.grid_levels == expected
+    assert any("encoding.levels=auto" in r for r in s.reasons) == (expected is not None)
+
+
+def test_auto_grid_levels_reach_the_field_and_old_checkpoints_keep_one() -> None:
+    """build_renderer builds the levels the setup decided; a setup saved before encoding.levels existed
+    (no grid_levels) rebuilds the one-level grid it was trained with."""
+    from nerfart_plugin.systems.base import build_renderer
+    from nerfart_plugin.systems.scene_setup import SceneSetup
+
+    enc = {"name": "grid", "resolution": "auto", "levels": "auto", "n_components": 2, "out_features": 8}
+    s = decide_setup(_scene("object", True), _render(), ndc=False, encoding_cfg=enc)
+    r = build_renderer({"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(), s)
+    assert r.field.encoding.resolutions == [32, 64, 128]
+    old = {k: v for k, v in s.to_dict().items() if k != "grid_levels"}
+    r_old = build_renderer({"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(),
+                           SceneSetup(**old))
+    assert r_old.field.encoding.resolutions == [128]

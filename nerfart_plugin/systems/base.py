@@ -28,6 +28,8 @@ def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderCon
     encoding = dict(encoding_cfg)
     if encoding.get("resolution") == "auto" and setup.grid_resolution is not None:
         encoding["resolution"] = setup.grid_resolution  # decided from the scene (decide_setup)
+    if encoding.get("levels") == "auto" and setup.grid_levels is not None:
+        encoding["levels"] = setup.grid_levels  # decided from the backbone (decide_setup)
     field = build_field(dict(backbone_cfg), encoding, bound=setup.bound)
     background = build_background({"name": "envmap"}) if setup.background_model else None
     occupancy: Optional[OccupancyGrid] = None

@@ -35,6 +35,8 @@ class SceneSetup:
         reasons: why each choice was made (logged, written to metrics.json).
         grid_resolution: cells per side of the grid encoding where ``encoding.resolution=auto``
             (None: the encoding's own resolution).
+        grid_levels: levels of the grid encoding where ``encoding.levels=auto`` (None: the encoding's own;
+            a checkpoint from before this setting rebuilds with one level).
     """
 
     capture: str
@@ -48,6 +50,7 @@ class SceneSetup:
     reasons: list[str] = field(default_factory=list)
     occupancy_sampling: str = "occupied"
     grid_resolution: Optional[int] = None
+    grid_levels: Optional[int] = None
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -139,12 +142,28 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
         num_samples = occ.weighted_samples
         reasons.append(f"{num_samples} samples per ray (render.occupancy.weighted_samples): weighted sampling "
                        "crowds them where rays end")
+    grid_levels = _grid_levels(encoding_cfg or {}, opacity_scores, reasons)
     grid_res = _grid_resolution(scene, ndc, bound, encoding_cfg or {}, reasons)
     setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,
-                       has_masks, reasons, sampling if occ_res else "occupied", grid_res)
+                       has_masks, reasons, sampling if occ_res else "occupied", grid_res, grid_levels)
     for r in reasons:
         log.info("scene setup: %s", r)
     return setup
+
+
+def _grid_levels(encoding_cfg: dict[str, Any], opacity_scores: bool, reasons: list[str]) -> Optional[int]:
+    """The grid encoding's levels for ``encoding.levels=auto`` (None for any other setting, or a list of sides)."""
+    resolution = encoding_cfg.get("resolution")
+    if encoding_cfg.get("levels") != "auto" or not (resolution == "auto" or isinstance(resolution, int)):
+        return None
+    from nerfart_plugin.fields.encodings import AUTO_SDF_LEVELS
+
+    if opacity_scores:
+        reasons.append("grid encoding with one level: a density field (encoding.levels=auto)")
+        return 1
+    reasons.append(f"grid encoding with {AUTO_SDF_LEVELS} levels, each coarser one half the side of the next: "
+                   "an SDF field (encoding.levels=auto)")
+    return AUTO_SDF_LEVELS
 
 
 def _grid_resolution(scene: Scene, ndc: bool, bound: float, encoding_cfg: dict[str, Any],
