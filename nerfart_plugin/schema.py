@@ -173,7 +173,7 @@ class ReconstructConfig(Section):
                                 "reconstructs the scene, so it cannot be 0")
     lambda_eikonal: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the eikonal term (SDF); 0: off")
     lambda_mask: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the mask BCE (scenes with mattes); 0: off")
-    mask_ray_share: Float = Setting(0.6, ge=0.0, le=1.0, description="scenes with mattes: share of each step's "
+    mask_ray_share: Float = Setting(0.8, ge=0.0, le=1.0, description="scenes with mattes: share of each step's "
                                     "rays drawn from inside the mattes (the rest from all pixels) once "
                                     "reconstruct.mask_ray_share_after steps have passed, so the subject gets more "
                                     "of the batch than its area; 0: all rays uniform over the pixels")
