@@ -67,7 +67,7 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
 
     ctx = Context([*scene_overrides, "preset=paper_res", f"output_root={out_root}", *(QUICK if quick else [])], None,
                   "trained")  # the preset's reconstruction: its field is what the preset stylizes
-    ov = [*GUIDES[guide], "preset=paper_res", "stylize.resolution=auto", "stylize.video_frames=0"]
+    ov = [*GUIDES[guide], "stylize.resolution=auto", "stylize.video_frames=0"]  # the preset is in ctx.base
     r = run_steps(ctx, ov, steps, prompt=PROMPT)
     s = steady(r["timings"])
     g, k = r["guidance"], int(r["local_patches"])
@@ -201,8 +201,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
         body += ["", "### Part 2: the whole paper-resolution job on fangzhou_nature", "",
                  f"`preset=paper_res guidance=imagenet +prompt=\"{job['prompt']}\"` from an empty output root "
                  "(frames at 270x480, the preset's one-level reconstruction, then 4 epochs of the training views at "
-                 "270x480), "
-                 "each stage as a user waits for it (training, evaluation, video, meshes).", ""]
+                 "270x480), each stage as a user waits for it (training, evaluation, video, meshes).", ""]
         body += _measured_by(raw, "job")
         body += common.md_table(["measurement", "value", "goal", "met"], [
             ["whole job", f"{f(job['job_s'] / 60, '.1f')} min", f"<= {TARGET_JOB_S / 60:.0f} min",
