@@ -281,10 +281,13 @@ def _setup_text(setup: dict) -> list[str]:
     """The decided sizes and sampling of one run's scene setup, as short phrases."""
     grid, levels = setup.get("grid_resolution"), setup.get("grid_levels")
     occ = setup.get("occupancy_resolution", 0)
+    share, matte = setup.get("mask_ray_share"), setup.get("matte_fraction")
     return [f"grid encoding side {grid if grid else 'as configured'}"
             + (f", {levels} levels" if levels and levels > 1 else ""),
             f"occupancy grid {occ}^3, {setup.get('occupancy_sampling')} sampling" if occ else "no occupancy grid, "
-            "uniform samples", f"{setup.get('num_samples')} samples/ray"]
+            "uniform samples", f"{setup.get('num_samples')} samples/ray",
+            *([f"mattes on {matte:.0%} of the training pixels, {share:.0%} of each batch drawn inside them "
+               "(reconstruct.mask_ray_share=auto)"] if share is not None and matte is not None else [])]
 
 
 def report(results: dict, specs: dict, args: argparse.Namespace, argv: list[str], info: dict, fig: Optional[Path],

@@ -100,7 +100,8 @@ class SceneContext:
         run, plain = typed(cfg)
         return replace(self, cfg=run, plain=plain, setup=decide_setup(self.scene, run.render, ndc=self.ndc,
                                                                       opacity_scores=occupancy_scores_opacity(run.backbone),
-                                                                      encoding_cfg=run.encoding))
+                                                                      encoding_cfg=run.encoding,
+                                                                      reconstruct_cfg=run.reconstruct))
 
 
 def build_scene(cfg: Any) -> SceneContext:
@@ -119,7 +120,7 @@ def build_scene(cfg: Any) -> SceneContext:
     for note in scene.notes:
         log.info("data: %s", note)
     setup = decide_setup(scene, run.render, ndc=dm.ndc, opacity_scores=occupancy_scores_opacity(run.backbone),
-                         encoding_cfg=run.encoding)
+                         encoding_cfg=run.encoding, reconstruct_cfg=run.reconstruct)
     return SceneContext(run, plain, dm, setup, pick_device(run.device), root, list(scene.notes))
 
 

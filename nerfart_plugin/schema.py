@@ -173,10 +173,12 @@ class ReconstructConfig(Section):
                                 "reconstructs the scene, so it cannot be 0")
     lambda_eikonal: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the eikonal term (SDF); 0: off")
     lambda_mask: Float = Setting(0.1, ge=0.0, le=1e6, description="weight of the mask BCE (scenes with mattes); 0: off")
-    mask_ray_share: Float = Setting(0.8, ge=0.0, le=1.0, description="scenes with mattes: share of each step's "
-                                    "rays drawn from inside the mattes (the rest from all pixels) once "
-                                    "reconstruct.mask_ray_share_after steps have passed, so the subject gets more "
-                                    "of the batch than its area; 0: all rays uniform over the pixels")
+    mask_ray_share: Union[Literal["auto"], Annotated[Float, Field(ge=0.0, le=1.0)]] = Setting(
+        "auto", description="scenes with mattes: share of each step's rays drawn from inside the mattes (the rest "
+        "from all pixels) once reconstruct.mask_ray_share_after steps have passed; auto: 0.8 where the mattes cover "
+        "less than half of the training pixels (a subject that fills a minority of the frame gets most of the "
+        "batch), else 0 (the scene setup decides and logs why); 0: all rays uniform over the pixels",
+        allowed="auto or a number in [0, 1]")
     mask_ray_share_after: Int = Setting(2000, ge=0, le=10**9, description="steps of rays drawn uniformly over all "
                                         "pixels before reconstruct.mask_ray_share applies: the background is carved "
                                         "out first (from step 0, short runs keep floaters near the box corners)")

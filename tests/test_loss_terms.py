@@ -100,6 +100,26 @@ def test_mask_ray_share_draws_the_subject_more_often():
     assert no_masks.foreground_rays() is None and no_masks.sample_batch(0)["rays_o"].shape == (32, 3)
 
 
+
+def test_auto_mask_ray_share_is_the_scene_setups_decision():
+    """reconstruct.mask_ray_share=auto (the default) draws the share the scene setup decided from the
+    mattes; without a decision (no mattes, or an older setup) the draw is uniform."""
+    from dataclasses import replace
+
+    rays = _rays(4000)
+    enc = {"name": "grid", "resolution": 8, "n_components": 2}
+    cfg = {"batch_rays": 2000, "mask_ray_share_after": 0}
+    decided = ReconstructionSystem(cfg, BACKBONE, enc, RENDER, replace(_setup(), mask_ray_share=0.8), train_rays=rays)
+    assert decided.cfg.mask_ray_share == "auto" and decided.mask_ray_share == 0.8
+    assert decided.sample_batch(3)["mask"].mean() > 0.8 + 0.15 * rays["mask"].mean()
+    undecided = ReconstructionSystem(cfg, BACKBONE, enc, RENDER, _setup(), train_rays=rays)
+    assert undecided.mask_ray_share == 0.0 and undecided.foreground_rays() is None
+    g = torch.Generator().manual_seed(step_seed(0, 3))
+    assert torch.equal(undecided.sample_batch(3)["rays_d"], rays["rays_d"][torch.randint(0, 4000, (2000,), generator=g)])
+    number = ReconstructionSystem({**cfg, "mask_ray_share": 0.3}, BACKBONE, enc, RENDER,
+                                  replace(_setup(), mask_ray_share=0.8), train_rays=rays)
+    assert number.mask_ray_share == 0.3  # a number in the config wins over the setup's decision
+
 def _stylization(cfg: dict, tv_weight: float = 0.5, occupancy: int = 8) -> StylizationSystem:
     enc = {"name": "grid", "resolution": 8, "n_components": 2, "tv_weight": tv_weight}
     torch.manual_seed(0)

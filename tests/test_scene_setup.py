@@ -156,3 +156,23 @@ def test_auto_grid_levels_reach_the_field_and_old_checkpoints_keep_one() -> None
     r_old = build_renderer({"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(),
                            SceneSetup(**old))
     assert r_old.field.encoding.resolutions == [128]
+
+
+@pytest.mark.parametrize("covered,share", [(0.25, 0.8), (0.4, 0.8), (0.56, 0.0), (1.0, 0.0)])
+def test_auto_mask_ray_share_follows_the_mattes_share_of_the_frame(covered: float, share: float) -> None:
+    """reconstruct.mask_ray_share=auto: 0.8 of each batch inside the mattes where they cover less than
+    half of the training pixels (the head: 39%), uniform rays where the subject fills most of the frame
+    (the fangzhou_nature selfie: 56%); the decision and its reason are in the setup."""
+    scene = _scene("object", True)
+    rows = int(round(covered * scene.height))
+    scene.masks.zero_()
+    scene.masks[:, :rows] = 1.0
+    scene.masks[1] = 0.0  # the held-out view's matte does not count
+    s = decide_setup(scene, _render(), ndc=False)
+    assert s.matte_fraction == pytest.approx(rows / scene.height)
+    assert s.mask_ray_share == share
+    assert any("reconstruct.mask_ray_share=auto" in r and f"{s.matte_fraction:.0%}" in r for r in s.reasons)
+    number = decide_setup(scene, _render(), ndc=False, reconstruct_cfg={"mask_ray_share": 0.3})
+    assert number.mask_ray_share is None and not any("mask_ray_share" in r for r in number.reasons)
+    no_mattes = decide_setup(_scene("object", False), _render(), ndc=False)
+    assert no_mattes.matte_fraction is None and no_mattes.mask_ray_share is None

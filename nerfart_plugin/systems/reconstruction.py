@@ -73,19 +73,26 @@ class ReconstructionSystem(RenderSystem):
         g = torch.Generator().manual_seed(step_seed(self.seed + 1_000_033 * self.global_rank, step))
         n = self.train_rays["rays_o"].shape[0]
         fg = self.foreground_rays()
-        share = self.cfg.mask_ray_share if step >= self.cfg.mask_ray_share_after else 0.0
+        share = self.mask_ray_share if step >= self.cfg.mask_ray_share_after else 0.0
         k = int(round(share * self.cfg.batch_rays)) if fg is not None else 0
         idx = torch.randint(0, n, (self.cfg.batch_rays - k,), generator=g)
         if k:
             idx = torch.cat([fg[torch.randint(0, fg.numel(), (k,), generator=g)], idx])
         return to_device({k: v[idx] for k, v in self.train_rays.items() if torch.is_tensor(v)}, self.device)
 
+    @property
+    def mask_ray_share(self) -> float:
+        """Share of each batch drawn inside the mattes (from ``reconstruct.mask_ray_share_after`` on):
+        ``reconstruct.mask_ray_share``, or the scene setup's decision where it is ``auto``."""
+        share = self.cfg.mask_ray_share
+        return (self.setup_info.mask_ray_share or 0.0) if share == "auto" else float(share)
+
     def foreground_rays(self) -> Optional[torch.Tensor]:
         """Indices [F] of the training rays inside the mattes (mask > 0.5); None without mattes, when
-        none is inside, or with ``reconstruct.mask_ray_share=0``."""
+        none is inside, or with a share of 0."""
         if not hasattr(self, "_foreground"):
             mask = self.train_rays.get("mask") if self.train_rays is not None else None
-            ids = (mask.reshape(-1) > 0.5).nonzero()[:, 0] if mask is not None and self.cfg.mask_ray_share > 0 else None
+            ids = (mask.reshape(-1) > 0.5).nonzero()[:, 0] if mask is not None and self.mask_ray_share > 0 else None
             self._foreground = ids if ids is not None and ids.numel() > 0 else None
         return self._foreground
 
