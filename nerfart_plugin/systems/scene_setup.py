@@ -22,7 +22,8 @@ log = logging.getLogger(__name__)
 #: (README "Method"): the head (mattes on 39% of its pixels, a near-flat backdrop; VolSDF, 10 min) read
 #: 27.09-27.18 dB masked at 0.8 (three runs) against 26.95 at 0.6; the fangzhou_nature selfie (56%, a
 #: textured background the field paints too; preset=paper_res, 6000 steps) read 26.26 dB held-out
-#: (24.22 masked) with uniform rays against 25.83 (24.07) at 0.6 and 25.23 (23.87) at 0.8.
+#: (24.22 masked) with uniform rays against 25.83 (24.07) at 0.6 and 25.23 (23.87) at 0.8; the yanan_nature
+#: selfie (52%) 26.92 (24.34) uniform against 26.55 (24.24) at 0.8.
 AUTO_MASK_RAY_SHARE = 0.8
 #: the matte fraction of the training pixels below which ``auto`` draws :data:`AUTO_MASK_RAY_SHARE`
 AUTO_MATTE_MINORITY = 0.5
