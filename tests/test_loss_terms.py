@@ -100,7 +100,6 @@ def test_mask_ray_share_draws_the_subject_more_often():
     assert no_masks.foreground_rays() is None and no_masks.sample_batch(0)["rays_o"].shape == (32, 3)
 
 
-
 def test_auto_mask_ray_share_is_the_scene_setups_decision():
     """reconstruct.mask_ray_share=auto (the default) draws the share the scene setup decided from the
     mattes; without a decision (no mattes, or an older setup) the draw is uniform."""
@@ -119,6 +118,7 @@ def test_auto_mask_ray_share_is_the_scene_setups_decision():
     number = ReconstructionSystem({**cfg, "mask_ray_share": 0.3}, BACKBONE, enc, RENDER,
                                   replace(_setup(), mask_ray_share=0.8), train_rays=rays)
     assert number.mask_ray_share == 0.3  # a number in the config wins over the setup's decision
+
 
 def _stylization(cfg: dict, tv_weight: float = 0.5, occupancy: int = 8) -> StylizationSystem:
     enc = {"name": "grid", "resolution": 8, "n_components": 2, "tv_weight": tv_weight}

@@ -18,12 +18,9 @@ from nerfart_plugin.schema import ReconstructConfig, RenderConfig, section
 log = logging.getLogger(__name__)
 
 #: ``reconstruct.mask_ray_share=auto``: the share of each batch drawn inside the mattes where the subject
-#: fills less than :data:`AUTO_MATTE_MINORITY` of the training pixels (else 0: uniform rays). Measured
-#: (README "Method"): the head (mattes on 39% of its pixels, a near-flat backdrop; VolSDF, 10 min) read
-#: 27.09-27.18 dB masked at 0.8 (three runs) against 26.95 at 0.6; the fangzhou_nature selfie (56%, a
-#: textured background the field paints too; preset=paper_res, 6000 steps) read 26.26 dB held-out
-#: (24.22 masked) with uniform rays against 25.83 (24.07) at 0.6 and 25.23 (23.87) at 0.8; the yanan_nature
-#: selfie (52%) 26.92 (24.34) uniform against 26.55 (24.24) at 0.8.
+#: fills less than :data:`AUTO_MATTE_MINORITY` of the training pixels (else 0: uniform rays). The runs
+#: behind both numbers (the head, 39% mattes, gains at 0.8; two selfies, 52-56%, lose with any share)
+#: are in README "Method".
 AUTO_MASK_RAY_SHARE = 0.8
 #: the matte fraction of the training pixels below which ``auto`` draws :data:`AUTO_MASK_RAY_SHARE`
 AUTO_MATTE_MINORITY = 0.5
