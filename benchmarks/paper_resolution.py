@@ -53,13 +53,16 @@ GUIDES: dict[str, list[str]] = {
                               "guidance.clip.pretrained=null", "guidance.vgg.weights=null"],
     "imagenet": ["guidance=imagenet"],
 }
+#: Lightning mixed precisions part 1 also times, with this guide (the method's own networks)
+MIXED, MIXED_GUIDE = ("bf16-mixed", "16-mixed"), "clip (random weights)"
 QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1000", "render.occupancy.resolution=16"]
 
 
 # --------------------------------------------------------------------------- part 1
 def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out_root: Path,
-              quick: bool) -> dict[str, Any]:
-    """Median step and its parts, and the guidance floor of the same step, at the scene's own resolution."""
+              quick: bool, precision: str = "32-true") -> dict[str, Any]:
+    """Median step and its parts, and the guidance floor of the same step, at the scene's own resolution,
+    under ``trainer.precision=precision``."""
     import torch
 
     from benchmarks.stylization import Context, run_steps, steady, timed
@@ -67,7 +70,8 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
 
     ctx = Context([*scene_overrides, "preset=paper_res", f"output_root={out_root}", *(QUICK if quick else [])], None,
                   "trained")  # the preset's reconstruction: its field is what the preset stylizes
-    ov = [*GUIDES[guide], "stylize.resolution=auto", "stylize.video_frames=0"]  # the preset is in ctx.base
+    ov = [*GUIDES[guide], "stylize.resolution=auto", "stylize.video_frames=0",  # the preset is in ctx.base
+          f"trainer.precision={precision}"]
     r = run_steps(ctx, ov, steps, prompt=PROMPT)
     s = steady(r["timings"])
     g, k = r["guidance"], int(r["local_patches"])
@@ -84,10 +88,41 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
     floor = timed(guidance_passes, reps)
     log.info("%s at %dx%d: step %.2f s, guidance floor %.2f s (view + %d patches), ratio %.2f", guide, W, H,
              s["step_no_cache"], floor, k, s["step_no_cache"] / floor)
-    return {"guide": guide, "width": W, "height": H, "local_patches": k, "samples": r["num_samples"],
-            "step": s["step_no_cache"], "render": s["render_nograd"], "losses": s["losses_and_image_grad"],
-            "backprop": s["patch_backprop"], "floor": floor, "ratio": s["step_no_cache"] / floor,
-            "steps": len(r["timings"]), **precision_costs(g, r["perceptual"], guidance_passes, H, W, reps)}
+    out = {"guide": guide, "precision": precision, "width": W, "height": H, "local_patches": k,
+           "samples": r["num_samples"], "step": s["step_no_cache"], "render": s["render_nograd"],
+           "losses": s["losses_and_image_grad"], "backprop": s["patch_backprop"], "floor": floor,
+           "ratio": s["step_no_cache"] / floor, "steps": len(r["timings"])}
+    if precision == "32-true":
+        return {**out, **precision_costs(g, r["perceptual"], guidance_passes, H, W, reps)}
+    return {**out, **mixed_fidelity(ctx, view, r["num_samples"], precision)}
+
+
+def mixed_fidelity(ctx: Any, view: dict[str, Any], samples: int, precision: str) -> dict[str, Any]:
+    """What ``trainer.precision`` (a ``*-mixed`` one) changes in the source field's render of ``view`` and in
+    the field's parameter gradient of one two-pass backprop (a fixed random image gradient): PSNR (dB) and
+    cosine against float32, same samples."""
+    import torch
+
+    from nerfart_plugin.factories import build_renderer
+    from nerfart_plugin.losses import psnr
+    from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
+
+    dtype = torch.bfloat16 if precision.startswith("bf16") else torch.float16
+    r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
+    r.load_state_dict(ctx.source_state)
+    r.num_samples = samples
+    img_grad = torch.randn(view["rays_o"].shape[0], 3, generator=torch.Generator().manual_seed(0)) * 1e-3
+
+    def render_and_grad(mixed: bool) -> tuple[torch.Tensor, torch.Tensor]:
+        r.zero_grad(set_to_none=True)
+        with torch.autocast("cpu", dtype=dtype, enabled=mixed):
+            first = render_fixed_samples(r, view, 8192, generator=torch.Generator().manual_seed(1))
+            backprop_patches(r, view, first["t_samples"], img_grad, 8192)
+        return first["rgb"].float(), torch.cat([p.grad.flatten() for p in r.parameters() if p.grad is not None])
+
+    (ref, g_ref), (low, g_low) = render_and_grad(False), render_and_grad(True)
+    return {"render_db": float(psnr(low.clamp(0, 1), ref.clamp(0, 1))),
+            "grad_cos": float(torch.nn.functional.cosine_similarity(g_low, g_ref, dim=0))}
 
 
 def precision_costs(guidance: Any, perceptual: Any, guidance_passes: Any, H: int, W: int, reps: int) -> dict[str, Any]:
@@ -159,15 +194,39 @@ def _measured_by(raw: dict[str, Any], part: str) -> list[str]:
     return [f"Measured by `{run['command']}` ({run['utc']}).", ""] if run else []
 
 
+def _precision_label(row: dict[str, Any]) -> str:
+    """`` / bf16-mixed`` for a row under a trainer precision other than float32, else empty."""
+    precision = row.get("precision", "32-true")
+    return "" if precision == "32-true" else f" / {precision}"
+
+
 def _headroom(rows: list[dict[str, Any]]) -> list[str]:
     """What the goal leaves besides the guidance passes, against what the field work alone measured."""
     f = common.fmt
-    lines = [f"- {r['scene']} / {r['guide']}: at {TARGET_RATIO}x the rest of the step (both render passes, the "
+    lines = [f"- {r['scene']} / {r['guide']}{_precision_label(r)}: at {TARGET_RATIO}x the rest of the step (both render passes, the "
              f"perceptual network, the loss arithmetic) would have to fit in {f(r['floor'] * (TARGET_RATIO - 1))} s; "
              f"the field work alone (pass 1 + pass 2) took {f(r['render'] + r['backprop'])} s "
              f"({f((r['render'] + r['backprop']) / r['floor'])}x the floor), the losses beyond the floor "
              f"{f(max(0.0, r['losses'] - r['floor']))} s." for r in rows if r.get("floor")]
     return ["", "What the goal leaves (same figures):", "", *lines] if lines else []
+
+
+def _mixed(rows: list[dict[str, Any]]) -> list[str]:
+    """Mixed-precision rows against the float32 row of the same scene and guide: time and fidelity."""
+    f = common.fmt
+    base = {(r["scene"], r["guide"]): r for r in rows if r.get("precision", "32-true") == "32-true"}
+    out = [[r["scene"], r["guide"], r["precision"], f(base[(r["scene"], r["guide"])]["step"] / r["step"]),
+            f((base[(r["scene"], r["guide"])]["render"] + base[(r["scene"], r["guide"])]["backprop"])
+              / (r["render"] + r["backprop"])), f(r["render_db"], ".1f"), f(r["grad_cos"], ".5f")]
+           for r in rows if "render_db" in r and (r["scene"], r["guide"]) in base]
+    if not out:
+        return []
+    return ["", "Mixed precision (`trainer.precision`): the field's colour net under autocast (its geometry net, "
+            "the occupancy lookups, the guidance's own `precision` and the contrastive logits stay as in float32), "
+            "against the float32 row above. Fidelity: the source field's view rendered both ways (PSNR) and the "
+            "parameter gradient of one two-pass backprop of a fixed image gradient (cosine), same samples.", "",
+            *common.md_table(["scene", "guide", "trainer.precision", "step speed-up", "field work speed-up",
+                              "render vs float32 (dB)", "gradient cosine vs float32"], out)]
 
 
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
@@ -180,13 +239,15 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
             f"as the step calls it, same run. Goal: step <= {TARGET_RATIO}x the floor.", ""]
     rows = []
     for row in raw.get("steps", []):
-        rows.append([row["scene"], f"{row['width']}x{row['height']}", row["guide"], f(row["step"]), f(row["render"]),
-                     f(row["losses"]), f(row["backprop"]), f(row["floor"]), f"**{f(row['ratio'])}**",
-                     "yes" if row["ratio"] <= TARGET_RATIO else "no"])
+        rows.append([row["scene"], f"{row['width']}x{row['height']}", row["guide"], row.get("precision", "32-true"),
+                     f(row["step"]), f(row["render"]), f(row["losses"]), f(row["backprop"]), f(row["floor"]),
+                     f"**{f(row['ratio'])}**", "yes" if row["ratio"] <= TARGET_RATIO else "no"])
     body += _measured_by(raw, "steps")
-    body += common.md_table(["scene", "view", "guide", "step (s)", "pass 1: render (s)", "losses + dL/dI (s)",
-                             "pass 2: patch backprop (s)", "guidance floor (s)", "step / floor", "meets goal"], rows)
+    body += common.md_table(["scene", "view", "guide", "trainer.precision", "step (s)", "pass 1: render (s)",
+                             "losses + dL/dI (s)", "pass 2: patch backprop (s)", "guidance floor (s)", "step / floor",
+                             "meets goal"], rows)
     body += _headroom(raw.get("steps", []))
+    body += _mixed(raw.get("steps", []))
     prec = [[r["scene"], r["guide"], f"{f(r['floor'])} ({r['floor_dtype']})", f(r["floor_fp32"]),
              f"{f(r.get('perceptual_auto'))} ({r.get('perceptual_dtype', '–')})", f(r.get("perceptual_fp32"))]
             for r in raw.get("steps", []) if "floor_fp32" in r]
@@ -222,6 +283,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
     p.add_argument("--guides", nargs="+", default=list(GUIDES), choices=list(GUIDES))
+    p.add_argument("--mixed", nargs="*", default=["bf16-mixed"], choices=MIXED,
+                   help=f"trainer.precision values also timed with the {MIXED_GUIDE!r} guide (none: float32 only)")
     p.add_argument("--steps", type=int, default=None, help="part 1 steps per configuration (default 6, quick 2)")
     p.add_argument("--reps", type=int, default=None, help="repetitions of the floor timing (default 5, quick 1)")
     p.add_argument("--skip-job", action="store_true", help="part 1 only")
@@ -243,11 +306,13 @@ def main(argv: Optional[list[str]] = None) -> int:
     if not args.skip_steps:
         raw["steps"] = []
         raw.setdefault("measured_by", {})["steps"] = this_run
+        runs = [(g, "32-true") for g in args.guides]
+        runs += [(MIXED_GUIDE, m) for m in args.mixed if MIXED_GUIDE in args.guides]
         for scene in args.scenes:
-            for guide in args.guides:
+            for guide, precision in runs:
                 ov = [o.format(shared=shared) for o in SCENES[scene]]
                 row = step_cost(ov, guide, args.steps or (2 if q else 6), args.reps or (1 if q else 5),
-                                args.out_root, q)
+                                args.out_root, q, precision)
                 raw["steps"].append({"scene": scene, **row})
                 common.atomic_write_text(raw_path, json.dumps(raw, indent=1))
     if not args.skip_job:

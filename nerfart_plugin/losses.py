@@ -132,7 +132,8 @@ def contrastive_loss(query: Tensor, positive: Tensor, negatives: Tensor, tau: fl
     else:
         p = _unit(_as_row(positive, "positive"))
     pos = (q * p).sum(-1, keepdim=True)  # [B,1]
-    neg = q @ _unit(negatives).t()  # [B,M]
+    with torch.autocast(q.device.type, enabled=False):  # as precise as pos under trainer.precision=*-mixed
+        neg = q @ _unit(negatives).to(q.dtype).t()  # [B,M]
     logits = torch.cat([pos, neg], dim=1) / tau
     target = torch.zeros(q.shape[0], dtype=torch.long, device=q.device)
     return F.cross_entropy(logits, target)

@@ -263,10 +263,26 @@ def test_paper_resolution_quick(out: Path, tmp_path: Path, shared_data: Path) ->
     assert mod.main(argv) == 0
     sec = _check_common(out.read_text(), "paper_resolution", "--guides imagenet")
     rows = _table_rows(sec)
-    assert rows[0].startswith("| head | 48x48 | imagenet |")
+    assert rows[0].startswith("| head | 48x48 | imagenet | 32-true |")
     assert any(r.startswith("| whole job |") for r in rows)
     figures = json.loads(raw.read_text())
     assert figures["steps"][0]["floor"] > 0 and figures["job"]["steps"] > 0 and figures["job"]["top5"] is not None
+
+
+def test_paper_resolution_mixed_precision_quick(out: Path, tmp_path: Path, shared_data: Path) -> None:
+    """Part 1 under trainer.precision=bf16-mixed: the step runs, and the render and the two-pass gradient
+    stay those of float32 (the geometry net and the occupancy lookups are float32 under autocast)."""
+    pytest.importorskip("open_clip")
+    mod = _load("paper_resolution")
+    raw = tmp_path / "raw.json"
+    argv = ["--quick", "--scenes", "head", "--guides", "clip (random weights)", "--mixed", "bf16-mixed",
+            "--skip-job", "--out-root", str(tmp_path / "runs"), "--raw", str(raw), "--out", str(out)]
+    assert mod.main(argv) == 0
+    sec = _check_common(out.read_text(), "paper_resolution", "--mixed bf16-mixed")
+    assert "| head | 48x48 | clip (random weights) | bf16-mixed |" in sec
+    mixed = json.loads(raw.read_text())["steps"][1]
+    assert mixed["precision"] == "bf16-mixed" and mixed["step"] > 0
+    assert mixed["render_db"] > 40.0 and mixed["grad_cos"] > 0.99
 
 
 def test_step_split_quick(out: Path, shared_data: Path) -> None:

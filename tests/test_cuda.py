@@ -11,7 +11,7 @@ import torch
 
 from pipeline_helpers import tiny_cfg
 
-from render_helpers import front_view, tiny_renderer
+from render_helpers import check_sharp_surface_under_autocast, front_view, tiny_renderer
 
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 from nerfart_plugin.systems.base import to_device
@@ -87,6 +87,13 @@ def test_autocast_renders_finite_and_close(dtype: torch.dtype) -> None:
     assert torch.isfinite(out["rgb"]).all() and all(torch.isfinite(p.grad).all() for p in r.parameters()
                                                     if p.grad is not None)
     assert float((out["rgb"].float() - ref).abs().mean()) < 0.02
+
+
+@pytest.mark.parametrize("backbone", ["volsdf", "neus"])
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_autocast_keeps_a_sharp_surface_on_cuda(backbone: str, dtype: torch.dtype) -> None:
+    """trainer.precision=16-mixed / bf16-mixed on a trained-sharp surface (render_helpers)."""
+    check_sharp_surface_under_autocast(backbone, torch.device("cuda"), dtype)
 
 
 @pytest.mark.slow

@@ -78,6 +78,19 @@ def test_reduced_precision_matches_fp32(precision: str) -> None:
     assert low.compute_dtype(torch.device("cpu")) == want
 
 
+def test_fp32_stays_fp32_under_an_outer_autocast() -> None:
+    """guidance.clip.precision=fp32 inside a step run under trainer.precision=bf16-mixed: the image tower
+    still runs in float32 (the same embeddings as outside the autocast)."""
+    torch.manual_seed(0)
+    fp32 = build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": "fp32"}})
+    x = torch.rand(2, 3, 64, 64)
+    with torch.no_grad():
+        ref = fp32.encode_image(x)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            inside = fp32.encode_image(x)
+    torch.testing.assert_close(inside, ref, rtol=1e-5, atol=1e-6)
+
+
 def test_precision_errors() -> None:
     with pytest.raises(ConfigError, match="precision"):
         build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": "int8"}})

@@ -94,6 +94,20 @@ def test_vgg_bf16_matches_fp32_loss_and_image_gradient(delta: float) -> None:
     assert float(l0) == 0.0 and float(g0.abs().max()) == 0.0
 
 
+def test_vgg_fp32_stays_fp32_under_an_outer_autocast() -> None:
+    """guidance.vgg.precision=fp32 inside a step run under trainer.precision=bf16-mixed: the resize and the
+    trunk run in float32 (the same features as outside the autocast)."""
+    torch.manual_seed(0)
+    p = Perceptual(weights=None, allow_random_weights=True, precision="fp32", max_size=48)
+    x = torch.rand(1, 3, 64, 80)
+    with torch.no_grad():
+        ref = p.features(x)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            inside = p.features(x)
+    for a, b in zip(inside, ref):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-6)
+
+
 def test_vgg_precision_errors() -> None:
     with pytest.raises(ConfigError, match="guidance.vgg.precision"):
         Perceptual(weights=None, allow_random_weights=True, precision="int8")

@@ -156,3 +156,15 @@ def test_reconstruction_and_psnr() -> None:
     assert losses.psnr(rgb, tgt, mask).item() == pytest.approx(20.0)
     assert losses.reconstruction_loss(rgb, tgt, torch.zeros(2)).item() == 0.0
     assert torch.isfinite(losses.psnr(tgt, tgt))
+
+
+def test_contrastive_loss_is_float32_under_bfloat16_autocast() -> None:
+    """trainer.precision=bf16-mixed runs the stylization step under autocast: the negatives' cosines stay
+    float32 like the positive's (a bfloat16 matmul shifted the logits by up to 0.01 at tau 0.07)."""
+    g = torch.Generator().manual_seed(0)
+    q, p, n = torch.randn(13, 512, generator=g), torch.randn(512, generator=g), torch.randn(200, 512, generator=g)
+    ref = losses.contrastive_loss(q, p, n)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = losses.contrastive_loss(q, p, n)
+    assert low.dtype == torch.float32
+    torch.testing.assert_close(low, ref, rtol=1e-6, atol=1e-6)

@@ -6,6 +6,7 @@ import pytest
 import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from render_helpers import check_sharp_surface_under_autocast
 
 from nerfart_plugin.fields import build_field
 from nerfart_plugin.fields.base import Field
@@ -136,3 +137,9 @@ def test_sdf_fields_far_points_finite(backbone: str) -> None:
     assert _finite(out["sdf"], out["gradient"], a)
     (a.sum() + out["rgb"].sum() + field.regularizers(out)["eikonal"]).backward()
     assert all(_finite(p.grad) for p in field.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("backbone", ["volsdf", "neus"])
+def test_bfloat16_autocast_keeps_a_sharp_surface_where_float32_puts_it(backbone: str) -> None:
+    """trainer.precision=bf16-mixed on a CPU (render_helpers.check_sharp_surface_under_autocast)."""
+    check_sharp_surface_under_autocast(backbone, torch.device("cpu"), torch.bfloat16)

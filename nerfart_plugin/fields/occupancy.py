@@ -96,7 +96,8 @@ class OccupancyGrid(nn.Module):
         r2 = float(self.resolution + 2)
         u = u.clamp_(0.0, r2 - 0.5).floor_()
         if r2**3 <= 2**24:  # the flat index is exact in float32: one matmul instead of integer arithmetic
-            return (u @ torch.tensor([r2 * r2, r2, 1.0], device=u.device)).long()
+            with torch.autocast(u.device.type, enabled=False):  # a bfloat16 matmul rounds the index
+                return (u.float() @ torch.tensor([r2 * r2, r2, 1.0], device=u.device)).long()
         ijk = u.long()
         return (ijk[..., 0] * int(r2) + ijk[..., 1]) * int(r2) + ijk[..., 2]
 

@@ -304,14 +304,15 @@ class CLIPGuidance(Guidance):
 
     # -------------------------------------------------------------------------------
     def preprocess(self, img: Tensor) -> Tensor:
-        """[B,3,H,W] in [0,1] -> [B,3,S,S] normalized model input (differentiable)."""
-        img = img.float()
-        if self.resize_mode == "shortest":
-            img = kornia.geometry.transform.resize(img, self.input_size, side="short", antialias=True)
-            img = kornia.geometry.transform.center_crop(img, self.image_size)
-        elif tuple(img.shape[-2:]) != self.image_size:
-            img = kornia.geometry.transform.resize(img, self.image_size, interpolation="bilinear", antialias=True)
-        return self.normalize(img)
+        """[B,3,H,W] in [0,1] -> [B,3,S,S] normalized model input (differentiable), float32 under any autocast."""
+        with torch.autocast(img.device.type, enabled=False):  # the antialiasing blur is a conv
+            img = img.float()
+            if self.resize_mode == "shortest":
+                img = kornia.geometry.transform.resize(img, self.input_size, side="short", antialias=True)
+                img = kornia.geometry.transform.center_crop(img, self.image_size)
+            elif tuple(img.shape[-2:]) != self.image_size:
+                img = kornia.geometry.transform.resize(img, self.image_size, interpolation="bilinear", antialias=True)
+            return self.normalize(img)
 
     def compute_dtype(self, device: torch.device) -> torch.dtype:
         """The dtype image encoding runs in on ``device`` (see ``precision``)."""
@@ -321,7 +322,8 @@ class CLIPGuidance(Guidance):
         """The image tower on preprocessed ``x`` [B,3,S,S] in ``compute_dtype``; float32 [B,D]."""
         dtype = self.compute_dtype(x.device)
         if dtype == torch.float32:
-            return self.net.encode_image(x).float()
+            with torch.autocast(x.device.type, enabled=False):  # fp32 also under trainer.precision=*-mixed
+                return self.net.encode_image(x).float()
         with torch.autocast(x.device.type, dtype=dtype):
             if x.device.type == "cpu" and x.shape[0] > 1:  # one at a time: see ``precision``
                 return torch.cat([self.net.encode_image(xi[None]) for xi in x]).float()

@@ -193,10 +193,11 @@ class Perceptual(nn.Module):
         each [B,C_l,H_l,W_l]; differentiable w.r.t. ``img``."""
         if img.dim() != 4 or img.shape[1] != 3:
             raise ValueError(f"Perceptual.features expects [B,3,H,W] in [0,1], got {tuple(img.shape)}")
-        x = img.float()
-        if self.max_size is not None and max(x.shape[-2:]) > self.max_size:
-            x = kornia.geometry.transform.resize(x, self.max_size, side="long", antialias=True)
-        x = self.normalize(x)
+        with torch.autocast(img.device.type, enabled=False):  # float32 resize under trainer.precision=*-mixed
+            x = img.float()
+            if self.max_size is not None and max(x.shape[-2:]) > self.max_size:
+                x = kornia.geometry.transform.resize(x, self.max_size, side="long", antialias=True)
+            x = self.normalize(x)
         dtype = self.compute_dtype(x.device)
         out: dict[str, Tensor] = {}
         with torch.autocast(x.device.type, dtype=dtype, enabled=dtype != torch.float32):
