@@ -291,8 +291,8 @@ class TrainerConfig(Section):
     log_every_n_steps: Int = Setting(10, ge=1, le=10**9, description="steps between logged metrics",
                                      changes_results=False)
     precision: Precision = Setting("32-true", description="Lightning precision: 32-true, or bf16-mixed / 16-mixed "
-                                   "(the colour net under autocast; SDF geometry and occupancy lookups stay float32; "
-                                   "no faster on a 2-core CPU, README 'Speed knobs')")
+                                   "(colour and NeRF density nets under autocast; SDF geometry, rays and occupancy "
+                                   "lookups stay float32; no faster on a 2-core CPU, README 'Speed knobs')")
     strategy: str = Setting("auto", min_length=1, description="Lightning strategy: auto (one device) | ddp | ...",
                             allowed="a Lightning strategy: auto, ddp, ddp_spawn, fsdp, deepspeed, ... "
                                     "(lightning.pytorch.strategies.StrategyRegistry)")

@@ -42,7 +42,8 @@ def pixel_rays(K: torch.Tensor, c2w: torch.Tensor, H: int, W: int) -> tuple[torc
     y = (v - cy) / fy
     x = (u - cx - skew * y) / fx
     dirs_cam = torch.stack([x, y, torch.ones_like(x)], dim=-1)  # [H,W,3]
-    dirs = dirs_cam @ c2w[:3, :3].T
+    with torch.autocast(c2w.device.type, enabled=False):  # a bfloat16 rotation tilts rays by ~1 pixel
+        dirs = dirs_cam @ c2w[:3, :3].T
     dirs = dirs / dirs.norm(dim=-1, keepdim=True)
     origins = c2w[:3, 3].expand_as(dirs).clone()
     return origins, dirs
