@@ -115,7 +115,7 @@ def mixed_fidelity(ctx: Any, view: dict[str, Any], samples: int, precision: str)
 
     def render_and_grad(mixed: bool) -> tuple[torch.Tensor, torch.Tensor]:
         r.zero_grad(set_to_none=True)
-        with torch.autocast("cpu", dtype=dtype, enabled=mixed):
+        with torch.autocast(view["rays_o"].device.type, dtype=dtype, enabled=mixed):
             first = render_fixed_samples(r, view, 8192, generator=torch.Generator().manual_seed(1))
             backprop_patches(r, view, first["t_samples"], img_grad, 8192)
         return first["rgb"].float(), torch.cat([p.grad.flatten() for p in r.parameters() if p.grad is not None])
@@ -203,8 +203,8 @@ def _precision_label(row: dict[str, Any]) -> str:
 def _headroom(rows: list[dict[str, Any]]) -> list[str]:
     """What the goal leaves besides the guidance passes, against what the field work alone measured."""
     f = common.fmt
-    lines = [f"- {r['scene']} / {r['guide']}{_precision_label(r)}: at {TARGET_RATIO}x the rest of the step (both render passes, the "
-             f"perceptual network, the loss arithmetic) would have to fit in {f(r['floor'] * (TARGET_RATIO - 1))} s; "
+    lines = [f"- {r['scene']} / {r['guide']}{_precision_label(r)}: at {TARGET_RATIO}x the rest of the step (both "
+             f"render passes, the perceptual network, the loss arithmetic) would have to fit in {f(r['floor'] * (TARGET_RATIO - 1))} s; "
              f"the field work alone (pass 1 + pass 2) took {f(r['render'] + r['backprop'])} s "
              f"({f((r['render'] + r['backprop']) / r['floor'])}x the floor), the losses beyond the floor "
              f"{f(max(0.0, r['losses'] - r['floor']))} s." for r in rows if r.get("floor")]
@@ -222,7 +222,8 @@ def _mixed(rows: list[dict[str, Any]]) -> list[str]:
     if not out:
         return []
     return ["", "Mixed precision (`trainer.precision`): the field's colour net under autocast (its geometry net, "
-            "the occupancy lookups, the guidance's own `precision` and the contrastive logits stay as in float32), "
+            "the rays, the occupancy lookups, the guidance's own `precision` and the contrastive logits stay as in "
+            "float32), "
             "against the float32 row above. Fidelity: the source field's view rendered both ways (PSNR) and the "
             "parameter gradient of one two-pass backprop of a fixed image gradient (cosine), same samples.", "",
             *common.md_table(["scene", "guide", "trainer.precision", "step speed-up", "field work speed-up",
