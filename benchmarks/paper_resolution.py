@@ -215,10 +215,13 @@ def _mixed(rows: list[dict[str, Any]]) -> list[str]:
     """Mixed-precision rows against the float32 row of the same scene and guide: time and fidelity."""
     f = common.fmt
     base = {(r["scene"], r["guide"]): r for r in rows if r.get("precision", "32-true") == "32-true"}
-    out = [[r["scene"], r["guide"], r["precision"], f(base[(r["scene"], r["guide"])]["step"] / r["step"]),
-            f((base[(r["scene"], r["guide"])]["render"] + base[(r["scene"], r["guide"])]["backprop"])
-              / (r["render"] + r["backprop"])), f(r["render_db"], ".1f"), f(r["grad_cos"], ".5f")]
-           for r in rows if "render_db" in r and (r["scene"], r["guide"]) in base]
+    out = []
+    for r in rows:
+        ref = base.get((r["scene"], r["guide"]))
+        if "render_db" in r and ref is not None:
+            out.append([r["scene"], r["guide"], r["precision"], f(ref["step"] / r["step"]),
+                        f((ref["render"] + ref["backprop"]) / (r["render"] + r["backprop"])),
+                        f(r["render_db"], ".1f"), f(r["grad_cos"], ".5f")])
     if not out:
         return []
     return ["", "Mixed precision (`trainer.precision`): the field's colour net under autocast (its geometry net, "
