@@ -80,11 +80,14 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
     frac = float(ctx.c["stylize"]["local_patch_frac"])
     gen = torch.Generator().manual_seed(0)
 
-    def guidance_passes() -> None:
-        img = torch.rand(1, 3, H, W, requires_grad=True)
-        emb = g.encode_images([img, random_patches(img, k, frac, g.input_size, generator=gen)])
-        sum(e.float().mean() for e in emb).backward()
+    def floor_passes(encode_images: Any) -> Any:
+        def run() -> None:
+            img = torch.rand(1, 3, H, W, requires_grad=True)
+            emb = encode_images([img, random_patches(img, k, frac, g.input_size, generator=gen)])
+            sum(e.float().mean() for e in emb).backward()
+        return run
 
+    guidance_passes = floor_passes(g.encode_images)
     floor = timed(guidance_passes, reps)
     log.info("%s at %dx%d: step %.2f s, guidance floor %.2f s (view + %d patches), ratio %.2f", guide, W, H,
              s["step_no_cache"], floor, k, s["step_no_cache"] / floor)
@@ -93,7 +96,8 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
            "losses": s["losses_and_image_grad"], "backprop": s["patch_backprop"], "floor": floor,
            "ratio": s["step_no_cache"] / floor, "steps": len(r["timings"])}
     if precision == "32-true":
-        return {**out, **precision_costs(g, r["perceptual"], guidance_passes, H, W, reps)}
+        return {**out, **precision_costs(g, r["perceptual"], guidance_passes, H, W, reps),
+                **({"floor_open_clip": timed(floor_passes(open_clip_as_loaded(g)), reps)} if g.name == "clip" else {})}
     return {**out, **mixed_fidelity(ctx, view, r["num_samples"], precision)}
 
 
@@ -123,6 +127,31 @@ def mixed_fidelity(ctx: Any, view: dict[str, Any], samples: int, precision: str)
     (ref, g_ref), (low, g_low) = render_and_grad(False), render_and_grad(True)
     return {"render_db": float(psnr(low.clamp(0, 1), ref.clamp(0, 1))),
             "grad_cos": float(torch.nn.functional.cosine_similarity(g_low, g_ref, dim=0))}
+
+
+def open_clip_as_loaded(g: Any) -> Any:
+    """``encode_images`` of the CLIP guidance ``g`` through a plain open_clip copy of its network, as the
+    guidance ran it before 2026-12-05: float32 weights that autocast casts on every call, the strided
+    convolution as patch embedding, torch's default attention kernel; the same preprocessing, precision
+    and one image at a time on CPU."""
+    import copy
+
+    import torch
+
+    net = copy.deepcopy(g.net)
+    emb = net.visual.conv1
+    net.visual.conv1 = torch.nn.Conv2d(emb.in_channels, emb.out_channels, emb.kernel_size, stride=emb.stride,
+                                       bias=emb.bias is not None)
+    net.visual.conv1.weight, net.visual.conv1.bias = emb.weight, emb.bias
+    dtype = g.compute_dtype(torch.device("cpu"))
+
+    def encode_images(imgs: list[torch.Tensor]) -> list[torch.Tensor]:
+        x = torch.cat([g.preprocess(i) for i in imgs])
+        with torch.autocast("cpu", dtype=dtype, enabled=dtype != torch.float32):
+            emb = torch.cat([net.encode_image(xi[None]) for xi in x]) if dtype != torch.float32 else net.encode_image(x)
+        return list(emb.float().split([i.shape[0] for i in imgs]))
+
+    return encode_images
 
 
 def precision_costs(guidance: Any, perceptual: Any, guidance_passes: Any, H: int, W: int, reps: int) -> dict[str, Any]:
@@ -252,14 +281,18 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
                              "meets goal"], rows)
     body += _headroom(raw.get("steps", []))
     body += _mixed(raw.get("steps", []))
-    prec = [[r["scene"], r["guide"], f"{f(r['floor'])} ({r['floor_dtype']})", f(r["floor_fp32"]),
+    prec = [[r["scene"], r["guide"], f(r.get("floor_open_clip")), f"{f(r['floor'])} ({r['floor_dtype']})", f(r["floor_fp32"]),
              f"{f(r.get('perceptual_auto'))} ({r.get('perceptual_dtype', '–')})", f(r.get("perceptual_fp32"))]
             for r in raw.get("steps", []) if "floor_fp32" in r]
     if prec:
         body += ["", "Arithmetic of the frozen networks on this CPU (`guidance.clip.precision`, `guidance.vgg.precision`; "
                  "`auto` in brackets): the floor's passes and the perceptual network's forward+backward at the view's "
-                 "size, same run. Where float32 is faster, set the precision to fp32.", ""]
-        body += common.md_table(["scene", "guide", "guidance floor, auto (s)", "guidance floor, fp32 batched (s)",
+                 "size, same run. Where float32 is faster, set the precision to fp32. The CLIP floor through open_clip "
+                 "as loaded (`auto` precision) is the guidance as it ran before 2026-12-05: float32 weights cast by "
+                 "autocast on every call, the strided-convolution patch embedding, torch's default attention kernel; "
+                 "the guidance now casts its weights once, embeds patches by a matmul and runs attention with the "
+                 "math kernel on CPU (same embeddings and image gradients, `tests/test_guidance_clip.py`).", ""]
+        body += common.md_table(["scene", "guide", "guidance floor, open_clip as loaded (s)", "guidance floor, auto (s)", "guidance floor, fp32 batched (s)",
                                  "perceptual, auto (s)", "perceptual, fp32 (s)"], prec)
     job = raw.get("job")
     if job:

@@ -127,6 +127,14 @@ def test_paper_resolution_times_both_precisions() -> None:
     assert calls == ["fp32", "fp32"]  # the auto floor is the one part 1 measured: only fp32 here (warm-up + run)
     assert set(costs) == {"floor_dtype", "floor_fp32", "perceptual_dtype", "perceptual_auto", "perceptual_fp32"}
     assert costs["floor_fp32"] >= 0 and costs["perceptual_fp32"] > 0 and g.precision == vgg.precision == "auto"
+    # the before-2026-12-05 reference: open_clip's own modules, the guidance's embeddings
+    import torch
+
+    x = [torch.rand(1, 3, 40, 40), torch.rand(2, 3, 32, 32)]
+    plain = mod.open_clip_as_loaded(g)(x)
+    assert type(g.net.visual.conv1) is not torch.nn.Conv2d  # the guidance keeps its own patch embedding
+    for a, b in zip(plain, g.encode_images(x)):
+        assert a.shape == b.shape and torch.nn.functional.cosine_similarity(a, b).min() > 0.999
 
 
 def test_tradeoff_quick(out: Path) -> None:

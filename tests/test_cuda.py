@@ -110,3 +110,30 @@ def test_tiny_pipeline_on_cuda(tmp_path: Path, precision: str) -> None:
         back = open_run(res[stage]["dir"], device="cpu")
         assert next(back.renderer.parameters()).device.type == "cpu"
         assert back.render(0)["rgb"].std() > 1
+
+
+def test_clip_guidance_on_cuda_matches_the_cpu() -> None:
+    """CLIP's image tower on CUDA (fp16 under ``auto``, its weights cast once, the patch embedding a matmul)
+    gives the CPU float32 embeddings and image gradients within fp16's precision; moved back to the CPU it
+    casts its weights anew there."""
+    from nerfart_plugin.guidance import build_guidance
+    from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
+
+    cfg = {"name": "clip", "allow_random_weights": True,
+           "clip": {"pretrained": None, "model_overrides": TINY_TEST_OVERRIDES, "precision": "fp32"}}
+    torch.manual_seed(0)
+    ref = build_guidance(cfg)
+    g = build_guidance({**cfg, "clip": {**cfg["clip"], "precision": "auto"}})
+    g.net.load_state_dict(ref.net.state_dict())
+    g.to("cuda")
+    cos = torch.nn.functional.cosine_similarity
+    x = torch.rand(3, 3, 40, 48, requires_grad=True)
+    e_ref = ref.encode_image(x)
+    g_ref = torch.autograd.grad(e_ref.square().sum(), x)[0]
+    xc = x.detach().cuda().requires_grad_(True)
+    e = g.encode_image(xc)
+    grad = torch.autograd.grad(e.square().sum(), xc)[0]
+    assert g.compute_dtype(xc.device) == torch.float16 and e.dtype == torch.float32
+    assert cos(e.cpu(), e_ref).min() > 0.999 and cos(grad.cpu().flatten(1), g_ref.flatten(1)).min() > 0.99
+    g.to("cpu")
+    assert cos(g.encode_image(x), e_ref).min() > 0.999

@@ -10,8 +10,13 @@ import torch
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import CLIPGuidance, build_guidance
 from nerfart_plugin.guidance import weights as wts
-from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
-from nerfart_plugin.guidance.precision import cpu_has_bf16
+from nerfart_plugin.guidance.clip import (
+    TINY_TEST_OVERRIDES,
+    PatchEmbedding,
+    attention_kernels,
+    use_matmul_patch_embedding,
+)
+from nerfart_plugin.guidance.precision import LowPrecisionWeights, cpu_has_bf16
 
 TINY_CFG = {
     "name": "clip",
@@ -76,6 +81,101 @@ def test_reduced_precision_matches_fp32(precision: str) -> None:
     assert torch.isfinite(gb).all() and cos(ga.flatten(1), gb.flatten(1)).min() > 0.99
     want = torch.bfloat16 if precision == "bf16" or cpu_has_bf16() else torch.float32
     assert low.compute_dtype(torch.device("cpu")) == want
+
+
+def _ops_on_weights(g: CLIPGuidance, x: torch.Tensor, per_call: bool = False) -> tuple[int, set[str]]:
+    """While ``g``'s image tower encodes the preprocessed ``x`` (bf16, forward and backward, after a first
+    encode): how many of its float32 linear, convolution and attention weights are cast, and the names of
+    the ops run; ``per_call``: through open_clip's own ``encode_image`` under plain autocast instead."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    kinds = (torch.nn.Linear, torch.nn.Conv2d, torch.nn.MultiheadAttention)
+    weights = {p.data_ptr() for m in g.net.visual.modules() if isinstance(m, kinds) for p in m.parameters()}
+
+    class Record(TorchDispatchMode):
+        casts, ops = 0, set()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Record.ops.add(str(func.overloadpacket))
+            if func is torch.ops.aten._to_copy.default and args[0].data_ptr() in weights:
+                Record.casts += 1
+            return func(*args, **(kwargs or {}))
+
+    xp = g.preprocess(x).detach().requires_grad_(True)
+    with Record():
+        if per_call:
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                emb = g.net.encode_image(xp)
+        else:
+            emb = g._net_image(xp)
+        emb.float().sum().backward()
+    return Record.casts, Record.ops
+
+
+def test_clip_image_tower_runs_cpu_fast_paths_with_autocasts_numbers() -> None:
+    """The bf16 image tower runs on weights cast once (LowPrecisionWeights), not on float32 weights that
+    autocast casts on every call, its patch embedding as a matmul, and attention with the math kernel on
+    CPU: bit for bit the embeddings and image gradients of open_clip under autocast with those kernels."""
+    torch.manual_seed(0)
+    g = build_guidance({**TINY_CFG, "clip": {**TINY_CFG["clip"], "precision": "bf16"}})
+    assert isinstance(g.net.visual.conv1, PatchEmbedding)
+    x = torch.rand(3, 3, 40, 48, requires_grad=True)
+    new = g.encode_image(x)
+    g_new = torch.autograd.grad(new.square().sum(), x)[0]
+    with attention_kernels(x.device), torch.autocast("cpu", dtype=torch.bfloat16):  # float32 weights, cast per call
+        old = torch.cat([g.net.encode_image(xi[None]) for xi in g.preprocess(x)]).float()
+    g_old = torch.autograd.grad(old.square().sum(), x)[0]
+    assert torch.equal(new, old) and torch.equal(g_new, g_old)
+    casts, ops = _ops_on_weights(g, x)
+    assert casts == 0 and _ops_on_weights(g, x, per_call=True)[0] > 0  # cast once, not per call
+    assert not any("flash" in op or "convolution" in op for op in ops), [op for op in ops if "flash" in op or "conv" in op]
+    assert all(p.dtype == torch.float32 for p in g.net.parameters())  # the module's own weights stay float32
+    assert set(g.state_dict()) == set(build_guidance(TINY_CFG).state_dict())  # the copies are not state
+
+
+def test_patch_embedding_is_the_strided_convolution() -> None:
+    """PatchEmbedding computes open_clip's patch convolution (float64: to rounding), keeps its parameters and
+    state-dict keys, refuses an image that is not a multiple of the patch, and replaces only a
+    non-overlapping convolution."""
+    torch.manual_seed(0)
+    visual = torch.nn.Module()
+    visual.conv1 = conv = torch.nn.Conv2d(3, 8, 4, stride=4, bias=False).double()
+    assert use_matmul_patch_embedding(visual) and isinstance(visual.conv1, PatchEmbedding)
+    assert visual.conv1.weight is conv.weight and list(visual.state_dict()) == ["conv1.weight"]
+    x = torch.rand(2, 3, 12, 16, dtype=torch.float64, requires_grad=True)
+    y = visual.conv1(x)
+    torch.testing.assert_close(y, conv(x), rtol=1e-12, atol=1e-12)
+    gy = torch.rand_like(y)
+    torch.testing.assert_close(torch.autograd.grad(y, x, gy)[0], torch.autograd.grad(conv(x), x, gy)[0])
+    with pytest.raises(ValueError, match="multiple of the patch size"):
+        visual.conv1(torch.rand(1, 3, 10, 16, dtype=torch.float64))
+    visual.conv1 = torch.nn.Conv2d(3, 8, 4, stride=2)
+    assert not use_matmul_patch_embedding(visual) and type(visual.conv1) is torch.nn.Conv2d
+
+
+def test_low_precision_weights_are_remade_when_a_weight_changes() -> None:
+    """The copies follow the module: the same copies while nothing changes, new ones after an in-place
+    change (load_state_dict) or for another dtype; only linear, convolution and attention-projection
+    weights are cast."""
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.Flatten(), torch.nn.LayerNorm(4 * 6 * 6),
+                              torch.nn.Linear(4 * 6 * 6, 5))
+    low = LowPrecisionWeights(net)
+    w = low.weights(torch.bfloat16)
+    assert set(w) == {"0.weight", "0.bias", "3.weight", "3.bias"} and all(t.dtype == torch.bfloat16 for t in w.values())
+    assert low.weights(torch.bfloat16) is w
+    x = torch.rand(2, 3, 8, 8)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.equal(low.run(torch.bfloat16, x), net(x))
+    state = {k: v + 1 for k, v in net.state_dict().items()}
+    net.load_state_dict(state)
+    w2 = low.weights(torch.bfloat16)
+    assert w2 is not w and torch.equal(w2["3.weight"], state["3.weight"].to(torch.bfloat16))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.equal(low.run(torch.bfloat16, x), net(x))
+    assert low.weights(torch.float16)["0.weight"].dtype == torch.float16
+    mha = LowPrecisionWeights(torch.nn.MultiheadAttention(8, 2))
+    assert set(mha.weights(torch.bfloat16)) == {"in_proj_weight", "in_proj_bias", "out_proj.weight", "out_proj.bias"}
 
 
 def test_fp32_stays_fp32_under_an_outer_autocast() -> None:

@@ -27,6 +27,7 @@ tokenizer (the end-of-text token is kept); we log a warning naming the prompt.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 from pathlib import Path
@@ -39,7 +40,7 @@ from torch import Tensor
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance
-from nerfart_plugin.guidance.precision import Precision, check_precision, compute_dtype
+from nerfart_plugin.guidance.precision import LowPrecisionWeights, Precision, check_precision, compute_dtype
 from nerfart_plugin.registry import register
 
 log = logging.getLogger(__name__)
@@ -53,6 +54,48 @@ TINY_TEST_OVERRIDES: dict[str, Any] = {
 }
 
 _HF_WEIGHT_FILES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
+
+
+class PatchEmbedding(torch.nn.Conv2d):
+    """A ViT's patch embedding (a convolution whose stride is its kernel, no padding) as one matmul over
+    the image's non-overlapping patches: the same sums, and on CPUs a backward to the image ~15x
+    faster than oneDNN's strided convolution (``BENCHMARKS.md``, "Paper resolution"). Same parameters
+    and state-dict keys as the ``nn.Conv2d`` it replaces."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        """[B,C,H,W] (H, W multiples of the patch size) -> [B,D,H/p,W/p]."""
+        (ph, pw), (B, C, H, W) = self.kernel_size, x.shape
+        h, w = H // ph, W // pw
+        if (h * ph, w * pw) != (H, W):
+            raise ValueError(f"PatchEmbedding: image {H}x{W} is not a multiple of the patch size {ph}x{pw}")
+        patches = x.reshape(B, C, h, ph, w, pw).permute(0, 2, 4, 1, 3, 5).reshape(B, h * w, C * ph * pw)
+        out = torch.nn.functional.linear(patches, self.weight.reshape(self.out_channels, -1), self.bias)
+        return out.reshape(B, h, w, self.out_channels).permute(0, 3, 1, 2)
+
+
+def attention_kernels(device: torch.device) -> contextlib.AbstractContextManager:
+    """The attention kernel the image tower runs with on ``device``: torch's math kernel on CPU, where
+    at a ViT's ~50 tokens the flash kernel's backward is the slower one (``BENCHMARKS.md``, "Paper
+    resolution"); torch's choice elsewhere."""
+    if device.type != "cpu":
+        return contextlib.nullcontext()
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    return sdpa_kernel(SDPBackend.MATH)
+
+
+def use_matmul_patch_embedding(visual: torch.nn.Module) -> bool:
+    """Swap ``visual.conv1`` (open_clip's ViT patch embedding) for a :class:`PatchEmbedding` sharing its
+    weights, where it is a plain non-overlapping convolution. Returns True if swapped."""
+    conv = getattr(visual, "conv1", None)
+    if (type(conv) is not torch.nn.Conv2d or conv.stride != conv.kernel_size or conv.padding != (0, 0)
+            or conv.dilation != (1, 1) or conv.groups != 1 or conv.padding_mode != "zeros"):
+        return False
+    emb = PatchEmbedding(conv.in_channels, conv.out_channels, conv.kernel_size, stride=conv.stride,
+                         bias=conv.bias is not None, device="meta")
+    emb.weight, emb.bias = conv.weight, conv.bias
+    visual.conv1 = emb
+    return True
 
 
 def _hf_cache_dir(cache_dir: str | None) -> str:
@@ -149,11 +192,12 @@ class CLIPGuidance(Guidance):
         precision: image-encoder arithmetic: "fp32", "bf16" (autocast), "fp16"
             (autocast; CUDA only) or "auto" (default): fp16 on CUDA, as OpenAI's
             CLIP runs there, bf16 on CPUs with native bf16 (AVX512-BF16/AMX),
-            else fp32. Weights and text embeddings stay fp32; embeddings stay within
-            cosine 0.99995 and image gradients within cosine 0.9998 of fp32 (speed:
-            ``BENCHMARKS.md``, stylization section). On CPU bf16 images are encoded one
-            at a time: with batches > 1, torch 2.14's CPU bf16 ``bmm`` path (frozen
-            weights) is far slower.
+            else fp32. Weights and text embeddings stay fp32 (the image tower's matmul
+            weights get one bf16/fp16 copy, cast once: ``guidance.precision.LowPrecisionWeights``);
+            embeddings stay within cosine 0.99995 and image gradients within cosine
+            0.9998 of fp32 (speed: ``BENCHMARKS.md``, stylization section). On CPU bf16
+            images are encoded one at a time: with batches > 1, torch 2.14's CPU bf16
+            ``bmm`` path is far slower.
         device: where to put the model (default CPU; ``.to()`` works as usual).
     """
 
@@ -227,7 +271,9 @@ class CLIPGuidance(Guidance):
         net.eval()
         for p in net.parameters():
             p.requires_grad_(False)
+        use_matmul_patch_embedding(net.visual)
         self.net = net
+        self._visual_low = LowPrecisionWeights(net.visual)  # open_clip: encode_image(x) is visual(x)
         size = net.visual.image_size
         self.image_size: tuple[int, int] = (size, size) if isinstance(size, int) else tuple(size)  # type: ignore[assignment]
         self.input_size = int(self.image_size[0])
@@ -321,13 +367,14 @@ class CLIPGuidance(Guidance):
     def _net_image(self, x: Tensor) -> Tensor:
         """The image tower on preprocessed ``x`` [B,3,S,S] in ``compute_dtype``; float32 [B,D]."""
         dtype = self.compute_dtype(x.device)
-        if dtype == torch.float32:
-            with torch.autocast(x.device.type, enabled=False):  # fp32 also under trainer.precision=*-mixed
-                return self.net.encode_image(x).float()
-        with torch.autocast(x.device.type, dtype=dtype):
-            if x.device.type == "cpu" and x.shape[0] > 1:  # one at a time: see ``precision``
-                return torch.cat([self.net.encode_image(xi[None]) for xi in x]).float()
-            return self.net.encode_image(x).float()
+        with attention_kernels(x.device):
+            if dtype == torch.float32:
+                with torch.autocast(x.device.type, enabled=False):  # fp32 also under trainer.precision=*-mixed
+                    return self.net.encode_image(x).float()
+            with torch.autocast(x.device.type, dtype=dtype):  # weights cast once, not per call
+                if x.device.type == "cpu" and x.shape[0] > 1:  # one at a time: see ``precision``
+                    return torch.cat([self._visual_low.run(dtype, xi[None]) for xi in x]).float()
+                return self._visual_low.run(dtype, x).float()
 
     def _encode_image(self, img: Tensor) -> Tensor:
         return self._net_image(self.preprocess(img))
