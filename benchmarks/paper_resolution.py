@@ -290,8 +290,9 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
                  "size, same run. Where float32 is faster, set the precision to fp32. The CLIP floor through open_clip "
                  "as loaded (`auto` precision) is the guidance as it ran before 2026-12-05: float32 weights cast by "
                  "autocast on every call, the strided-convolution patch embedding, torch's default attention kernel; "
-                 "the guidance now casts its weights once, embeds patches by a matmul and runs attention with the "
-                 "math kernel on CPU (same embeddings and image gradients, `tests/test_guidance_clip.py`).", ""]
+                 "the guidance now casts its weights once (the same numbers, bit for bit), embeds patches by a matmul "
+                 "(the same sums, to rounding) and runs attention with the math kernel on CPU (as close to float32 as "
+                 "the default kernel; `tests/test_guidance_clip.py`).", ""]
         body += common.md_table(["scene", "guide", "guidance floor, open_clip as loaded (s)", "guidance floor, auto (s)", "guidance floor, fp32 batched (s)",
                                  "perceptual, auto (s)", "perceptual, fp32 (s)"], prec)
     job = raw.get("job")
