@@ -122,10 +122,11 @@ class Context:
 
 
 def view_resolution(ctx: "Context") -> int:
-    """The long side (pixels) of the view the stylization step renders: ``stylize.resolution``, where
-    ``auto`` is the loaded images' own (as :func:`nerfart_plugin.factories.stylize_settings` resolves it)."""
-    res = ctx.c["stylize"]["resolution"]
-    return max(ctx.scene.scene.height, ctx.scene.scene.width) if res == "auto" else int(res)
+    """The long side (pixels) of the view the stylization step renders: ``stylize.resolution`` as the
+    system resolves it (``auto``: the loaded images' own)."""
+    from nerfart_plugin.factories import stylize_settings
+
+    return int(stylize_settings(ctx.scene).resolution)
 
 
 def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[int] = None,

@@ -215,10 +215,16 @@ def test_stylization_view_resolution_resolves_auto() -> None:
     """stylize.resolution=auto (the default) is the loaded images' long side, as the system resolves it."""
     from types import SimpleNamespace
 
+    from nerfart_plugin.schema import StylizeConfig
+
     mod = _load("stylization")
-    scene = SimpleNamespace(scene=SimpleNamespace(height=270, width=480))
-    assert mod.view_resolution(SimpleNamespace(c={"stylize": {"resolution": "auto"}}, scene=scene)) == 480
-    assert mod.view_resolution(SimpleNamespace(c={"stylize": {"resolution": 128}}, scene=scene)) == 128
+
+    def ctx(resolution: object) -> SimpleNamespace:
+        cfg = SimpleNamespace(stylize=StylizeConfig(resolution=resolution))
+        return SimpleNamespace(scene=SimpleNamespace(cfg=cfg, scene=SimpleNamespace(height=270, width=480)))
+
+    assert mod.view_resolution(ctx("auto")) == 480
+    assert mod.view_resolution(ctx(128)) == 128
 
 
 def test_stylization_quality_quick(out: Path, tmp_path: Path) -> None:
