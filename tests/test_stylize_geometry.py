@@ -73,3 +73,34 @@ def test_frozen_geometry_keeps_the_grid() -> None:
     before = s.renderer.occupancy.occupied.clone()
     assert not s.follow_geometry(0)
     assert torch.equal(before, s.renderer.occupancy.occupied)
+
+
+def test_a_bf16_mixed_stylization_step_backpropagates_outside_the_trainers_autocast() -> None:
+    """Lightning runs training_step, and so the step's dL/dI and its patch backward, under
+    trainer.precision's autocast. Both backward passes run with the autocast off (PyTorch's AMP recipe):
+    inside it, the float32 geometry net's and the contrastive logits' backward matmuls ran in bfloat16."""
+    from nerfart_plugin.fit import train_steps
+
+    s = system_for({"occupancy_update_every": 0, "chunk": 64, "patch_size": 8})
+    seen: dict[str, list[bool]] = {"image terms": [], "geometry net": []}
+
+    def record(part: str):
+        return lambda grad: seen[part].append(torch.is_autocast_enabled("cpu"))
+
+    image_losses = s.image_losses
+
+    def hooked_image_losses(*args):
+        terms = image_losses(*args)
+        for t in terms.values():
+            t.register_hook(record("image terms"))
+        return terms
+
+    s.image_losses = hooked_image_losses
+    def hook_geometry(module, inputs, out) -> None:
+        if out.requires_grad:
+            out.register_hook(record("geometry net"))
+
+    s.field.geo_net.register_forward_hook(hook_geometry)
+    train_steps(s, 2, torch.device("cpu"), {"precision": "bf16-mixed"})
+    assert len(seen["image terms"]) >= 2 and len(seen["geometry net"]) >= 2 * 4, seen  # 2 steps, 4 patches each
+    assert not any(seen["image terms"]) and not any(seen["geometry net"]), seen

@@ -68,3 +68,40 @@ def test_same_t_samples_reproduce_the_render() -> None:
     c = r(view, perturb=True, generator=torch.Generator().manual_seed(2))
     torch.testing.assert_close(a["rgb"], b["rgb"])
     assert not torch.allclose(a["t_samples"], c["t_samples"]), "jitter should differ between seeds"
+
+
+@pytest.mark.parametrize("backbone", ["volsdf", "neus"])
+def test_patch_backprop_under_a_mixed_precision_autocast_backpropagates_outside_it(backbone: str) -> None:
+    """trainer.precision=bf16-mixed: Lightning runs the stylization step under autocast. The patches are
+    rendered under it (the colour net in bfloat16), but their backward runs outside it, as PyTorch's AMP
+    recipe does: the float32 geometry net's backward matmuls stay float32, the parameter gradients are
+    those of a forward under autocast followed by a plain backward, bit for bit."""
+    torch.manual_seed(0)
+    r = _renderer(backbone, 8)
+    r.occupancy.update(r.field, 0, force=True)
+    view = _view()
+    first = render_fixed_samples(r, view, chunk=64, perturb=True, generator=torch.Generator().manual_seed(3))
+    rgb_grad = torch.randn(first["rgb"].shape, generator=torch.Generator().manual_seed(4))
+    n = first["rgb"].shape[0]
+
+    r.zero_grad()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = r(view, perturb=False, t_samples=first["t_samples"])
+        surrogate = (out["rgb"] * rgb_grad).sum()
+    surrogate.backward()  # the recipe: backward outside the autocast
+    ref = {k: p.grad.clone() for k, p in r.named_parameters() if p.grad is not None}
+
+    seen: list[bool] = []
+
+    def backward(loss: torch.Tensor) -> None:
+        seen.append(torch.is_autocast_enabled("cpu"))
+        loss.backward()
+
+    r.zero_grad()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        backprop_patches(r, view, first["t_samples"], rgb_grad, patch_rays=n, backward=backward)
+    assert seen == [False]
+    geometry = [k for k in ref if k.startswith("field.geo_net")]
+    assert geometry and all(r.get_parameter(k).grad.dtype == torch.float32 for k in ref)
+    for k, g in ref.items():
+        torch.testing.assert_close(r.get_parameter(k).grad, g, rtol=0, atol=0, msg=k)

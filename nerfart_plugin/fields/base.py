@@ -361,7 +361,9 @@ class SDFField(NeuralField):
         The surface is beta (VolSDF) or 1/inv_s (NeuS) wide, a few thousandths of the box on trained
         scenes, and the gradient is a difference quotient over ``fd_eps`` (1e-3 of the box): a bfloat16
         SDF (8 significant bits; x itself rounded to 0.004 at |x| = 1) moved a trained selfie's SDF by up to
-        0.007 and made the difference quotient noise. The colour net keeps the autocast."""
+        0.007 and made the difference quotient noise. The colour net keeps the autocast. The analytic gradient
+        (``grad_type=analytic``) is taken with autocast off as well: inside one, its backward matmuls ran in
+        bfloat16 and tilted the normals by up to 1% (tests/test_stability_rendering.py)."""
         dtype = self.geo_net.out.weight.dtype  # float32, or what the whole model was cast to (64-true)
         with torch.autocast(x.device.type, enabled=False):
             x = x.to(dtype)
@@ -404,9 +406,10 @@ class SDFField(NeuralField):
             xg = x if x.requires_grad else x.detach().requires_grad_(True)
             h = self._geo(xg)
             sdf = h[..., 0]
-            gradient = torch.autograd.grad(
-                sdf, xg, grad_outputs=torch.ones_like(sdf), create_graph=training_graph, retain_graph=training_graph
-            )[0]
+            with torch.autocast(x.device.type, enabled=False):  # the float32 net's backward stays float32 (_geo)
+                gradient = torch.autograd.grad(
+                    sdf, xg, grad_outputs=torch.ones_like(sdf), create_graph=training_graph, retain_graph=training_graph
+                )[0]
         feat = h[..., 1:]
         if not training_graph:
             sdf, feat, gradient = sdf.detach(), feat.detach(), gradient.detach()
@@ -424,7 +427,8 @@ class SDFField(NeuralField):
             return (tetra[:, None, :] * vals[..., None]).sum(0) / (4.0 * h)
         xg = x.detach().requires_grad_(True)
         sdf = self._geo(xg)[..., 0]
-        return torch.autograd.grad(sdf, xg, torch.ones_like(sdf), create_graph=True)[0].float()
+        with torch.autocast(x.device.type, enabled=False):  # see forward
+            return torch.autograd.grad(sdf, xg, torch.ones_like(sdf), create_graph=True)[0].float()
 
     def _forward_subset(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:
         """Training forward with the gradient on a random ``grad_samples`` subset (see ``forward``)."""

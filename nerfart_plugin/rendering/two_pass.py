@@ -68,7 +68,11 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
         ray_losses: optional ``name -> (lambda, fn(render_out, rays) -> per-patch mean loss)``,
             e.g. Eq. 7; each is weighted by the patch's share of rays so the total
             equals the mean over all rays.
-        backward: how to back-propagate a scalar (``LightningModule.manual_backward`` in training).
+        backward: how to back-propagate a scalar (``LightningModule.manual_backward`` in training). It is
+            called with autocast off: Lightning runs ``training_step`` under ``trainer.precision``'s autocast,
+            and a backward inside an autocast casts the backward matmuls of float32 forward ops (the SDF
+            geometry net, kept float32 on purpose) to bfloat16/float16 as well; outside it every backward op
+            runs in its forward op's dtype (PyTorch AMP notes: backward under autocast is not recommended).
 
     Returns:
         the value of each ray loss (mean over all rays), for logging.
@@ -86,5 +90,6 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
             value = fn(out, sub)
             totals[name] += float(value.detach()) * share
             surrogate = surrogate + lam * share * value
-        backward(surrogate)
+        with torch.autocast(surrogate.device.type, enabled=False):
+            backward(surrogate)
     return totals

@@ -304,8 +304,9 @@ class StylizationSystem(RenderSystem):
         img = first["rgb"].reshape(H, W, 3).permute(2, 0, 1)[None].clone().requires_grad_(True)
         terms = self.image_losses(img, src, g)
         image_loss = weighted_sum(terms, self.lambdas, step, "stylize")
-        rgb_grad = (torch.autograd.grad(image_loss, img)[0][0].permute(1, 2, 0).reshape(-1, 3) if terms
-                    else torch.zeros_like(first["rgb"]))
+        with torch.autocast(img.device.type, enabled=False):  # backward ops in their forward dtypes (two_pass)
+            rgb_grad = (torch.autograd.grad(image_loss, img)[0][0].permute(1, 2, 0).reshape(-1, 3) if terms
+                        else torch.zeros_like(first["rgb"]))
         return first, img, terms, image_loss, rgb_grad, t_render
 
     def patch_pass(self, view: dict[str, Any], src: dict[str, Any], t_samples: Tensor, rgb_grad: Tensor,
