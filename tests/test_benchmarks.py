@@ -262,6 +262,78 @@ def test_gpu_section_says_not_measured_without_cuda_and_tabulates_a_gpu_run(out:
     text = mod.report(raw, _load("gpu").common.machine_info(), "python benchmarks/gpu.py", quick=False)
     assert "| paper-resolution job (fangzhou_nature, 270x480, preset=paper_res): total | 6.0 min | <= 5 min | no |" in text
     assert "3.50 GiB | <= 4 GiB | yes" in text and "not measured" not in text
+    # figures a GPU machine returned (its gpu.json) become the section here, with that machine's line
+    info = {**mod.common.machine_info(), "cpu": "Lent EPYC", "nproc": 16}
+    returned = tmp_path / "returned.json"
+    returned.write_text(json.dumps({**raw, "info": info, "command": "python benchmarks/gpu.py --data-root D"}))
+    assert mod.main(["--report-from", str(returned), "--out", str(out)]) == 0
+    sec = _section(out.read_text(), "gpu")
+    assert "python benchmarks/gpu.py --data-root D" in sec and "Lent EPYC" in sec and "3.50 GiB" in sec
+    # a job the check's time limit stopped: the memory figure stays, the job reads not met
+    returned.write_text(json.dumps({k: v for k, v in {**raw, "info": info, "command": "c"}.items() if k != "paper_job"}))
+    assert mod.main(["--report-from", str(returned), "--out", str(out)]) == 0
+    sec = _section(out.read_text(), "gpu")
+    assert "3.50 GiB" in sec and "did not finish within the check's time limit | <= 5 min | no |" in sec
+    returned.write_text(json.dumps(raw))
+    with pytest.raises(SystemExit, match="predates --report-from"):
+        mod.main(["--report-from", str(returned), "--out", str(out)])
+
+
+def test_gpu_bundle_capture_loads_as_the_original_at_the_jobs_size(tmp_path: Path, shared_data: Path) -> None:
+    """The compact fangzhou_nature carried to a GPU machine gives the loader the pixels, mattes and cameras that
+    the full-size capture gives it at the paper-resolution job's size (data.resolution=auto)."""
+    from nerfart_plugin.data.h3ds import load_h3ds
+
+    bundle = _load("gpu_bundle")
+    assert bundle.shrink_capture(shared_data / "fangzhou_nature", tmp_path / "f") == (270, 480)
+    full, small = load_h3ds(shared_data / "fangzhou_nature"), load_h3ds(tmp_path / "f")
+    assert small.images.shape == full.images.shape and full.images.shape[1:] == (480, 270, 3)
+    assert torch_equal(small.images, full.images) and torch_equal(small.masks, full.masks)
+    assert small.image_names == full.image_names and small.capture == full.capture
+    assert (small.train_ids, small.val_ids) == (full.train_ids, full.val_ids)
+    for name in ("K", "c2w", "normalization", "near", "far"):
+        a, b = getattr(small, name), getattr(full, name)
+        assert float((a - b).abs().max()) <= 1e-5 * max(1.0, float(b.abs().max())), name
+    assert sum(f.stat().st_size for f in (tmp_path / "f").rglob("*")) < 20 * 2**20
+
+
+def torch_equal(a, b) -> bool:
+    import torch
+
+    return torch.equal(torch.as_tensor(a), torch.as_tensor(b))
+
+
+def test_gpu_bundle_names_requirements_that_neither_the_image_nor_the_bundle_has(tmp_path: Path) -> None:
+    import zipfile
+
+    bundle = _load("gpu_bundle")
+
+    def wheel(name: str, *requires: str) -> Path:
+        path = tmp_path / f"{name}-1.0-py3-none-any.whl"
+        meta = "\n".join(["Metadata-Version: 2.1", f"Name: {name}", "Version: 1.0",
+                          *[f"Requires-Dist: {r}" for r in requires]])
+        with zipfile.ZipFile(path, "w") as z:
+            z.writestr(f"{name}-1.0.dist-info/METADATA", meta)
+        return path
+
+    wheels = [wheel("alpha", "torch>=2", "beta", "Gamma_Pkg; python_version >= '3.12'",
+                    "delta; python_version < '3.10'", "eps; extra == 'dev'", "zeta; sys_platform == 'win32'"),
+              wheel("beta", "numpy")]
+    assert bundle.missing_requirements(wheels, "3.12", bundle.DEVICE_PACKAGES) == {wheels[0].name: ["gamma-pkg"]}
+    assert bundle.missing_requirements(wheels, "3.11", bundle.DEVICE_PACKAGES) == {}
+    assert {"torch", "lightning", "timm", "scikit-image"} <= bundle.DEVICE_PACKAGES
+    carried = {bundle.norm(d) for ds in bundle.PARTS.values() for d in ds}
+    assert not carried & bundle.DEVICE_PACKAGES, "a carried wheel would shadow the image's own version"
+
+
+@pytest.mark.slow
+def test_gpu_bundle_covers_every_import_of_the_gpu_checks_code_paths(tmp_path: Path, shared_data: Path) -> None:
+    """The tiny pipeline (the CUDA tests' CPU twin) and the quick paper-resolution job run on the CPU with every
+    import of a distribution outside the GPU image and the bundle refused."""
+    bundle = _load("gpu_bundle")
+    bundle.check_imports(shared_data, tmp_path)
+    with pytest.raises(RuntimeError, match="pyvista.*neither in the GPU image nor in the bundle"):
+        bundle.check_imports(shared_data, tmp_path, statement="import pyvista")  # the refusal works
 
 
 def test_render_speed_quick(out: Path, tmp_path: Path) -> None:
