@@ -119,12 +119,21 @@ def download(dists: Iterable[str], dest: Path, python: str, platforms: list[str]
     sdist-only release (antlr4-python3-runtime 4.9.3) is built into a pure-Python wheel here."""
     dest.mkdir(parents=True, exist_ok=True)
     for dist in dists:
-        spec = f"{dist}=={PINNED.get(dist) or md.version(dist)}"
+        try:
+            spec = f"{dist}=={PINNED.get(dist) or md.version(dist)}"
+        except md.PackageNotFoundError:
+            raise SystemExit(f"{dist} is not installed here, so its tested version is unknown: install the project "
+                             "with its extras first (pip install -e '.[dev,imagenet]').") from None
         cmd = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:", "--python-version",
                python, "--implementation", "cp", *[a for p in platforms for a in ("--platform", p)], "-d", str(dest), spec]
-        if subprocess.run(cmd, capture_output=True, text=True).returncode != 0:
-            log.info("no wheel of %s for Python %s: building one from its sdist", spec, python)
-            subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(dest), spec], check=True)
+        if subprocess.run(cmd, capture_output=True, text=True).returncode == 0:
+            continue
+        log.info("no wheel of %s for Python %s: building one from its sdist", spec, python)
+        built = subprocess.run([sys.executable, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(dest), spec],
+                               capture_output=True, text=True)
+        if built.returncode != 0:
+            raise SystemExit(f"neither a wheel nor an sdist of {spec} could be fetched (is the package index "
+                             f"reachable?):\n{built.stderr[-2000:]}")
 
 
 def shrink_capture(src: Path, dst: Path, long_side: int = JOB_LONG_SIDE) -> tuple[int, int]:
