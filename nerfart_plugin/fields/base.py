@@ -363,7 +363,7 @@ class SDFField(NeuralField):
         SDF (8 significant bits; x itself rounded to 0.004 at |x| = 1) moved a trained selfie's SDF by up to
         0.007 and made the difference quotient noise. The colour net keeps the autocast. The analytic gradient
         (``grad_type=analytic``) is taken with autocast off as well: inside one, its backward matmuls ran in
-        bfloat16 and tilted the normals by up to 1% (tests/test_stability_rendering.py)."""
+        bfloat16 and moved the gradient by up to 1.1% of its length (tests/test_stability_rendering.py)."""
         dtype = self.geo_net.out.weight.dtype  # float32, or what the whole model was cast to (64-true)
         with torch.autocast(x.device.type, enabled=False):
             x = x.to(dtype)
