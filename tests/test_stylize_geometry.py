@@ -96,6 +96,7 @@ def test_a_bf16_mixed_stylization_step_backpropagates_outside_the_trainers_autoc
         return terms
 
     s.image_losses = hooked_image_losses
+
     def hook_geometry(module, inputs, out) -> None:
         if out.requires_grad:
             out.register_hook(record("geometry net"))
