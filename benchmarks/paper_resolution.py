@@ -55,14 +55,16 @@ GUIDES: dict[str, list[str]] = {
 }
 #: Lightning mixed precisions part 1 also times, with this guide (the method's own networks)
 MIXED, MIXED_GUIDE = ("bf16-mixed", "16-mixed"), "clip (random weights)"
+#: ``stylize.backprop`` modes part 1 also times (float32, the same guide) against the paper's patches
+BACKPROPS = ("retain",)
 QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1000", "render.occupancy.resolution=16"]
 
 
 # --------------------------------------------------------------------------- part 1
 def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out_root: Path,
-              quick: bool, precision: str = "32-true") -> dict[str, Any]:
+              quick: bool, precision: str = "32-true", backprop: str = "patch") -> dict[str, Any]:
     """Median step and its parts, and the guidance floor of the same step, at the scene's own resolution,
-    under ``trainer.precision=precision``."""
+    under ``trainer.precision=precision`` and ``stylize.backprop=backprop``."""
     import torch
 
     from benchmarks.stylization import Context, run_steps, steady, timed
@@ -71,7 +73,7 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
     ctx = Context([*scene_overrides, "preset=paper_res", f"output_root={out_root}", *(QUICK if quick else [])], None,
                   "trained")  # the preset's reconstruction: its field is what the preset stylizes
     ov = [*GUIDES[guide], "stylize.resolution=auto", "stylize.video_frames=0",  # the preset is in ctx.base
-          f"trainer.precision={precision}"]
+          f"trainer.precision={precision}", f"stylize.backprop={backprop}"]
     r = run_steps(ctx, ov, steps, prompt=PROMPT)
     s = steady(r["timings"])
     g, k = r["guidance"], int(r["local_patches"])
@@ -91,14 +93,87 @@ def step_cost(scene_overrides: list[str], guide: str, steps: int, reps: int, out
     floor = timed(guidance_passes, reps)
     log.info("%s at %dx%d: step %.2f s, guidance floor %.2f s (view + %d patches), ratio %.2f", guide, W, H,
              s["step_no_cache"], floor, k, s["step_no_cache"] / floor)
-    out = {"guide": guide, "precision": precision, "width": W, "height": H, "local_patches": k,
+    out = {"guide": guide, "precision": precision, "backprop_mode": backprop, "width": W, "height": H, "local_patches": k,
            "samples": r["num_samples"], "step": s["step_no_cache"], "render": s["render_nograd"],
            "losses": s["losses_and_image_grad"], "backprop": s["patch_backprop"], "floor": floor,
            "ratio": s["step_no_cache"] / floor, "steps": len(r["timings"])}
+    if backprop != "patch":
+        return {**out, **retained_graph_cost(ctx, view, r["num_samples"], int(ctx.c["stylize"]["chunk"]),
+                                             int(ctx.c["stylize"]["patch_size"]) ** 2)}
     if precision == "32-true":
         return {**out, **precision_costs(g, r["perceptual"], guidance_passes, H, W, reps),
                 **({"floor_open_clip": timed(floor_passes(open_clip_as_loaded(g)), reps)} if g.name == "clip" else {})}
     return {**out, **mixed_fidelity(ctx, view, r["num_samples"], precision)}
+
+
+def retained_graph_cost(ctx: Any, view: dict[str, Any], samples: int, chunk: int, patch_rays: int) -> dict[str, Any]:
+    """What ``stylize.backprop=retain`` keeps and changes on the source field's ``view``: the bytes autograd
+    saves for the backward (the whole view's graph, against one patch of ``patch_rays`` rays, the most the
+    paper's backprop holds at once), and the cosine of the parameter gradients of both ways for a fixed
+    random image gradient, same samples (the ray terms aside)."""
+    import torch
+
+    from nerfart_plugin.factories import build_renderer
+    from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
+                                                   render_with_graph)
+
+    r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
+    r.load_state_dict(ctx.source_state)
+    r.num_samples = samples
+    img_grad = torch.randn(view["rays_o"].shape[0], 3, generator=torch.Generator().manual_seed(0)) * 1e-3
+
+    def grads() -> torch.Tensor:
+        out = torch.cat([p.grad.flatten() for p in r.parameters() if p.grad is not None])
+        r.zero_grad(set_to_none=True)
+        return out
+
+    first = render_fixed_samples(r, view, chunk, generator=torch.Generator().manual_seed(1))
+    with SavedBytes() as per_patch:
+
+        def backward(loss: torch.Tensor) -> None:
+            per_patch.close_graph()  # this patch's graph is complete: count the next one afresh
+            loss.backward()
+
+        backprop_patches(r, view, first["t_samples"], img_grad, patch_rays, backward=backward)
+    g_patch = grads()
+    with SavedBytes() as whole_view:
+        _, chunks = render_with_graph(r, view, chunk, generator=torch.Generator().manual_seed(1))
+        whole_view.close_graph()
+    backprop_retained(chunks, view, img_grad)
+    g_kept = grads()
+    return {"graph_patch_mib": max(per_patch.graphs) / 2**20, "graph_view_mib": whole_view.graphs[0] / 2**20,
+            "grad_cos": float(torch.nn.functional.cosine_similarity(g_kept, g_patch, dim=0))}
+
+
+class SavedBytes:
+    """Context counting the bytes of the distinct storages autograd saves for backward passes: one total per
+    graph in ``graphs`` (:meth:`close_graph` ends one), parameters included."""
+
+    def __init__(self) -> None:
+        import torch
+
+        self.graphs: list[int] = []
+        self._seen: set[int] = set()
+        self._bytes = 0
+        self._hooks = torch.autograd.graph.saved_tensors_hooks(self._pack, lambda x: x)
+
+    def _pack(self, x: Any) -> Any:
+        storage = x.untyped_storage()
+        if storage.data_ptr() not in self._seen:
+            self._seen.add(storage.data_ptr())
+            self._bytes += storage.nbytes()
+        return x
+
+    def close_graph(self) -> None:
+        self.graphs.append(self._bytes)
+        self._seen, self._bytes = set(), 0
+
+    def __enter__(self) -> "SavedBytes":
+        self._hooks.__enter__()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._hooks.__exit__(*exc)
 
 
 def mixed_fidelity(ctx: Any, view: dict[str, Any], samples: int, precision: str) -> dict[str, Any]:
@@ -224,9 +299,15 @@ def _measured_by(raw: dict[str, Any], part: str) -> list[str]:
 
 
 def _precision_label(row: dict[str, Any]) -> str:
-    """`` / bf16-mixed`` for a row under a trainer precision other than float32, else empty."""
-    precision = row.get("precision", "32-true")
-    return "" if precision == "32-true" else f" / {precision}"
+    """`` / bf16-mixed`` for a row under a trainer precision other than float32 (`` / retain`` for a
+    ``stylize.backprop`` other than the paper's patches), else empty."""
+    precision, backprop = row.get("precision", "32-true"), row.get("backprop_mode", "patch")
+    return ("" if precision == "32-true" else f" / {precision}") + ("" if backprop == "patch" else f" / {backprop}")
+
+
+def _is_baseline(row: dict[str, Any]) -> bool:
+    """float32 and the paper's patch backprop: the row the others are compared with."""
+    return row.get("precision", "32-true") == "32-true" and row.get("backprop_mode", "patch") == "patch"
 
 
 def _headroom(rows: list[dict[str, Any]]) -> list[str]:
@@ -243,7 +324,7 @@ def _headroom(rows: list[dict[str, Any]]) -> list[str]:
 def _mixed(rows: list[dict[str, Any]]) -> list[str]:
     """Mixed-precision rows against the float32 row of the same scene and guide: time and fidelity."""
     f = common.fmt
-    base = {(r["scene"], r["guide"]): r for r in rows if r.get("precision", "32-true") == "32-true"}
+    base = {(r["scene"], r["guide"]): r for r in rows if _is_baseline(r)}
     out = []
     for r in rows:
         ref = base.get((r["scene"], r["guide"]))
@@ -262,6 +343,30 @@ def _mixed(rows: list[dict[str, Any]]) -> list[str]:
                               "render vs float32 (dB)", "gradient cosine vs float32"], out)]
 
 
+def _retained(rows: list[dict[str, Any]]) -> list[str]:
+    """``stylize.backprop`` rows against the patch-backprop row of the same scene and guide: time, the graph
+    autograd keeps, the gradient's agreement."""
+    f = common.fmt
+    base = {(r["scene"], r["guide"]): r for r in rows if _is_baseline(r)}
+    out = []
+    for r in rows:
+        ref = base.get((r["scene"], r["guide"]))
+        if "graph_view_mib" in r and ref is not None:
+            out.append([r["scene"], r["guide"], r["backprop_mode"], f(ref["step"] / r["step"]),
+                        f((ref["render"] + ref["backprop"]) / (r["render"] + r["backprop"])),
+                        f(r["graph_patch_mib"], ".0f"), f(r["graph_view_mib"], ".0f"), f(r["grad_cos"], ".5f")])
+    if not out:
+        return []
+    return ["", "Memory for time (`stylize.backprop`): `retain` renders the view once with grad (marched, early "
+            "termination) and back-propagates through its kept graph; `patch` (the paper's) renders it without grad "
+            "and re-renders it patch by patch with grad. Against the patch row above, same run. Graph: the bytes "
+            "autograd saves for the backward (the source field's view, parameters included): the largest patch "
+            "(what `patch` holds at once) and the whole view (what `retain` holds). Gradient: cosine of the "
+            "parameter gradients of both ways for a fixed random image gradient, same samples.", "",
+            *common.md_table(["scene", "guide", "stylize.backprop", "step speed-up", "field work speed-up",
+                              "graph, one patch (MiB)", "graph, whole view (MiB)", "gradient cosine vs patch"], out)]
+
+
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
     f = common.fmt
     body = ["### Part 1: one stylization step at the paper's resolution versus its guidance floor", "",
@@ -273,14 +378,16 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
     rows = []
     for row in raw.get("steps", []):
         rows.append([row["scene"], f"{row['width']}x{row['height']}", row["guide"], row.get("precision", "32-true"),
-                     f(row["step"]), f(row["render"]), f(row["losses"]), f(row["backprop"]), f(row["floor"]),
-                     f"**{f(row['ratio'])}**", "yes" if row["ratio"] <= TARGET_RATIO else "no"])
+                     row.get("backprop_mode", "patch"), f(row["step"]), f(row["render"]), f(row["losses"]),
+                     f(row["backprop"]), f(row["floor"]), f"**{f(row['ratio'])}**",
+                     "yes" if row["ratio"] <= TARGET_RATIO else "no"])
     body += _measured_by(raw, "steps")
-    body += common.md_table(["scene", "view", "guide", "trainer.precision", "step (s)", "pass 1: render (s)",
-                             "losses + dL/dI (s)", "pass 2: patch backprop (s)", "guidance floor (s)", "step / floor",
-                             "meets goal"], rows)
+    body += common.md_table(["scene", "view", "guide", "trainer.precision", "stylize.backprop", "step (s)",
+                             "pass 1: render (s)", "losses + dL/dI (s)", "pass 2: backprop (s)", "guidance floor (s)",
+                             "step / floor", "meets goal"], rows)
     body += _headroom(raw.get("steps", []))
     body += _mixed(raw.get("steps", []))
+    body += _retained(raw.get("steps", []))
     prec = [[r["scene"], r["guide"], f(r.get("floor_open_clip")), f"{f(r['floor'])} ({r['floor_dtype']})", f(r["floor_fp32"]),
              f"{f(r.get('perceptual_auto'))} ({r.get('perceptual_dtype', '–')})", f(r.get("perceptual_fp32"))]
             for r in raw.get("steps", []) if "floor_fp32" in r]
@@ -323,6 +430,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     p.add_argument("--guides", nargs="+", default=list(GUIDES), choices=list(GUIDES))
     p.add_argument("--mixed", nargs="*", default=["bf16-mixed"], choices=MIXED,
                    help=f"trainer.precision values also timed with the {MIXED_GUIDE!r} guide (none: float32 only)")
+    p.add_argument("--backprop", nargs="*", default=list(BACKPROPS), choices=BACKPROPS,
+                   help=f"stylize.backprop modes also timed with the {MIXED_GUIDE!r} guide (none: the patches only)")
     p.add_argument("--steps", type=int, default=None, help="part 1 steps per configuration (default 6, quick 2)")
     p.add_argument("--reps", type=int, default=None, help="repetitions of the floor timing (default 5, quick 1)")
     p.add_argument("--skip-job", action="store_true", help="part 1 only")
@@ -344,13 +453,14 @@ def main(argv: Optional[list[str]] = None) -> int:
     if not args.skip_steps:
         raw["steps"] = []
         raw.setdefault("measured_by", {})["steps"] = this_run
-        runs = [(g, "32-true") for g in args.guides]
-        runs += [(MIXED_GUIDE, m) for m in args.mixed if MIXED_GUIDE in args.guides]
+        runs = [(g, "32-true", "patch") for g in args.guides]
+        runs += [(MIXED_GUIDE, m, "patch") for m in args.mixed if MIXED_GUIDE in args.guides]
+        runs += [(MIXED_GUIDE, "32-true", b) for b in args.backprop if MIXED_GUIDE in args.guides]
         for scene in args.scenes:
-            for guide, precision in runs:
+            for guide, precision, backprop in runs:
                 ov = [o.format(shared=shared) for o in SCENES[scene]]
                 row = step_cost(ov, guide, args.steps or (2 if q else 6), args.reps or (1 if q else 5),
-                                args.out_root, q, precision)
+                                args.out_root, q, precision, backprop)
                 raw["steps"].append({"scene": scene, **row})
                 common.atomic_write_text(raw_path, json.dumps(raw, indent=1))
     if not args.skip_job:

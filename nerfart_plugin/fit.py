@@ -29,7 +29,8 @@ from nerfart_plugin.utils.io import atomic_path
 
 log = logging.getLogger("nerfart_plugin")
 
-OOM_HINT = ("out of memory. Lower one of: render.chunk (rays per no-grad chunk of evaluation), stylize.chunk (rays "
+OOM_HINT = ("out of memory. With stylize.backprop=retain, set stylize.backprop=patch (it keeps the graph of a "
+            "whole view). Else lower one of: render.chunk (rays per no-grad chunk of evaluation), stylize.chunk (rays "
             "per no-grad chunk while stylizing), stylize.patch_size (rays per patch re-rendered with grad), "
             "stylize.resolution, reconstruct.batch_rays, render.num_samples, stylize.num_samples, export.chunk.")
 

@@ -201,7 +201,14 @@ class StylizeConfig(Section):
         "auto", description="long side (pixels) of the view the CLIP losses see; auto: the loaded "
         "images' own (the data resolution policy: 270x480 selfies, 256x256 H3DS head, as the paper)",
         allowed="auto or an integer in [8, 4096]")
-    patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)")
+    patch_size: Int = Setting(64, ge=1, le=1024, description="side of the patches re-rendered with grad (Sec. 4.4)",
+                              off="stylize.backprop=retain renders the view once with grad, without patches")
+    backprop: Literal["patch", "retain"] = Setting(
+        "patch", description="how the image losses' gradient reaches the field (Sec. 4.4): patch (the paper's: the "
+        "view rendered without grad, then re-rendered patch by patch with grad; memory bounded by "
+        "stylize.patch_size) | retain (the view rendered once with grad and its graph kept until the backward: "
+        "the re-render is saved, the memory holds every evaluated sample of the view; the same gradient to "
+        "float rounding)")
     num_samples: Optional[Int] = Setting(16, ge=1, le=1024, description="samples per ray while stylizing, where an "
                                          "occupancy grid places them at the surface; null, or a scene without a "
                                          "grid (NDC captures): render.num_samples")

@@ -258,10 +258,12 @@ def test_gpu_section_says_not_measured_without_cuda_and_tabulates_a_gpu_run(out:
     raw = {"cuda": True, "device": "NVIDIA X", "torch": "2.x", "cuda_version": "13.0",
            "paper_job": {"reconstruct_s": 100.0, "stylize_s": 260.0, "job_s": 360.0, "psnr": 27.0, "steps": 120,
                          "top5_source": 0.0, "top5": 1.0, "peak_gib": 3.0},
-           "memory_512": {"peak_gib": 3.5, "step_s": 0.4, "steps": 10}}
+           "memory_512": {"peak_gib": 3.5, "step_s": 0.4, "steps": 10,
+                          "retain_peak_gib": 9.25, "retain_step_s": 0.3, "retain_steps": 10}}
     text = mod.report(raw, _load("gpu").common.machine_info(), "python benchmarks/gpu.py", quick=False)
     assert "| paper-resolution job (fangzhou_nature, 270x480, preset=paper_res): total | 6.0 min | <= 5 min | no |" in text
     assert "3.50 GiB | <= 4 GiB | yes" in text and "not measured" not in text
+    assert "| 512x512, stylize.backprop=retain: peak GPU memory; seconds per step | 9.25 GiB; 0.30 |" in text
     # figures a GPU machine returned (its gpu.json) become the section here, with that machine's line
     info = {**mod.common.machine_info(), "cpu": "Lent EPYC", "nproc": 16}
     returned = tmp_path / "returned.json"
@@ -365,20 +367,29 @@ def test_paper_resolution_quick(out: Path, tmp_path: Path, shared_data: Path) ->
     assert figures["steps"][0]["floor"] > 0 and figures["job"]["steps"] > 0 and figures["job"]["top5"] is not None
 
 
-def test_paper_resolution_mixed_precision_quick(out: Path, tmp_path: Path, shared_data: Path) -> None:
+def test_paper_resolution_mixed_precision_and_retained_graph_quick(out: Path, tmp_path: Path,
+                                                                  shared_data: Path) -> None:
     """Part 1 under trainer.precision=bf16-mixed: the step runs, and the render and the two-pass gradient
-    stay those of float32 (the geometry net and the occupancy lookups are float32 under autocast)."""
+    stay those of float32 (the geometry net and the occupancy lookups are float32 under autocast). With
+    stylize.backprop=retain: the step runs, its gradient is the patches', and its graph is measured."""
     pytest.importorskip("open_clip")
     mod = _load("paper_resolution")
     raw = tmp_path / "raw.json"
     argv = ["--quick", "--scenes", "head", "--guides", "clip (random weights)", "--mixed", "bf16-mixed",
-            "--skip-job", "--out-root", str(tmp_path / "runs"), "--raw", str(raw), "--out", str(out)]
+            "--backprop", "retain", "--skip-job", "--out-root", str(tmp_path / "runs"), "--raw", str(raw),
+            "--out", str(out)]
     assert mod.main(argv) == 0
     sec = _check_common(out.read_text(), "paper_resolution", "--mixed bf16-mixed")
-    assert "| head | 48x48 | clip (random weights) | bf16-mixed |" in sec
-    mixed = json.loads(raw.read_text())["steps"][1]
+    assert "| head | 48x48 | clip (random weights) | bf16-mixed | patch |" in sec
+    assert "| head | 48x48 | clip (random weights) | 32-true | retain |" in sec
+    steps = json.loads(raw.read_text())["steps"]
+    mixed, kept = steps[1], steps[2]
     assert mixed["precision"] == "bf16-mixed" and mixed["step"] > 0
     assert mixed["render_db"] > 40.0 and mixed["grad_cos"] > 0.99
+    assert kept["backprop_mode"] == "retain" and kept["step"] > 0 and kept["grad_cos"] > 0.9999
+    # 48x48 = 2304 rays fit in one 64x64 patch: both ways keep one graph of the whole view
+    assert kept["graph_view_mib"] > 0 and kept["graph_view_mib"] == pytest.approx(kept["graph_patch_mib"], rel=0.5)
+    assert "Memory for time (`stylize.backprop`)" in sec
 
 
 def test_step_split_quick(out: Path, shared_data: Path) -> None:

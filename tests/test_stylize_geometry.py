@@ -105,3 +105,51 @@ def test_a_bf16_mixed_stylization_step_backpropagates_outside_the_trainers_autoc
     train_steps(s, 2, torch.device("cpu"), {"precision": "bf16-mixed"})
     assert len(seen["image terms"]) >= 2 and len(seen["geometry net"]) >= 2 * 4, seen  # 2 steps, 4 patches each
     assert not any(seen["image terms"]) and not any(seen["geometry net"]), seen
+
+
+def test_retained_graph_stylization_step_matches_the_patch_backprop(monkeypatch) -> None:
+    """stylize.backprop=retain through the real Trainer: the first step's parameter gradients (read before
+    the optimizer step) are the paper's patch backprop's, to float rounding."""
+    import lightning as L
+
+    import nerfart_plugin.systems.stylization as stylization
+    from nerfart_plugin.fit import train_steps
+
+    calls: list[str] = []
+    for name in ("render_with_graph", "backprop_patches"):
+        real = getattr(stylization, name)
+        monkeypatch.setattr(stylization, name, lambda *a, _f=real, _n=name, **k: calls.append(_n) or _f(*a, **k))
+
+    class FirstGradients(L.Callback):
+        def __init__(self) -> None:
+            self.grads: dict[str, torch.Tensor] = {}
+
+        def on_before_optimizer_step(self, trainer, module, optimizer) -> None:
+            if not self.grads:
+                self.grads = {n: p.grad.clone() for n, p in module.renderer.named_parameters() if p.grad is not None}
+
+    cfg = {"occupancy_update_every": 0, "chunk": 64, "patch_size": 8}
+    patch, retain = FirstGradients(), FirstGradients()
+    train_steps(system_for(cfg), 1, torch.device("cpu"), callbacks=[patch])
+    assert calls == ["backprop_patches"]
+    kept = system_for({**cfg, "backprop": "retain"})
+    train_steps(kept, 1, torch.device("cpu"), callbacks=[retain])
+    assert calls == ["backprop_patches", "render_with_graph"]
+    assert patch.grads and set(retain.grads) == set(patch.grads)
+    assert any(k.startswith("field.geo_net") for k in patch.grads), "the geometry should receive gradient"
+    for k, g in patch.grads.items():
+        rel = float((retain.grads[k] - g).norm() / g.norm().clamp_min(1e-12))
+        assert rel <= 1e-4, f"{k}: relative gradient difference {rel:.1e}"
+    assert set(kept.timings) >= {"render_nograd", "patch_backprop"}
+
+
+def test_retained_graph_refuses_views_too_large_to_keep(monkeypatch) -> None:
+    import pytest
+
+    import nerfart_plugin.systems.stylization as stylization
+    from nerfart_plugin.errors import ConfigError
+
+    monkeypatch.setattr(stylization, "MAX_GRAD_SAMPLES", 16 * 16 * 16 - 1)  # 16x16 rays x stylize.num_samples, less 1
+    with pytest.raises(ConfigError, match="stylize.backprop=patch"):
+        system_for({"backprop": "retain"})
+    system_for({"backprop": "patch"})  # the paper's patches are bounded by stylize.patch_size

@@ -187,9 +187,7 @@ class VolumeRenderer(nn.Module):
         ``regularizers``: the field's regularizer terms (a dict of 0-dim tensors, e.g. ``eikonal``: the
         mean over samples of ``(|grad sdf| - 1)^2``, ``grid_tv``), see ``Field.regularizers``.
         """
-        for key in ("rays_o", "rays_d", "near", "far"):
-            if key not in batch:
-                raise DataError(f"ray batch lacks {key!r}; build it with nerfart_plugin.data.rays (keys rays_o, rays_d, near, far).")
+        _check_ray_batch(batch)
         rays_o = batch["rays_o"].float()
         rays_d = batch["rays_d"].float()
         R, K = rays_o.shape[0], self.num_samples
@@ -212,7 +210,20 @@ class VolumeRenderer(nn.Module):
         alpha = self.field.alpha(out, deltas, dirs_k).float()
         alpha = torch.where(deltas > 0, alpha, torch.zeros_like(alpha))  # zero-length section = transparent
         weights, _ = weights_from_alpha(alpha)
-        rgb_k = out["rgb"].reshape(R, K, 3).float()
+        normal_k = out["normal"].reshape(R, K, 3).float() if "normal" in out else None
+        result = self._composite(batch, dirs, t_samples, weights, out["rgb"].reshape(R, K, 3).float(), normal_k)
+        result["deltas"] = deltas
+        if torch.is_grad_enabled():
+            result["regularizers"] = self.field.regularizers(reg_out)
+        return result
+
+    def _composite(self, batch: dict[str, Any], dirs: Tensor, t_samples: Tensor, weights: Tensor, rgb_k: Tensor,
+                   normal_k: Optional[Tensor]) -> dict[str, Tensor]:
+        """Eq. 1 from the weights [R,K] and per-sample colours [R,K,3] (normals [R,K,3] or None) of the
+        sections ``t_samples`` [R,K,2] along unit ``dirs`` [R,3]: :meth:`forward`'s ``rgb``, ``depth``,
+        ``opacity``, ``weights``, ``t``, ``t_samples`` and ``normal``."""
+        t_start, t_end = t_samples[..., 0], t_samples[..., 1]
+        t = 0.5 * (t_start + t_end)
         opacity = weights.sum(-1)
         rgb = (weights[..., None] * rgb_k).sum(-2)
         bg = self._background(batch, dirs)
@@ -220,16 +231,11 @@ class VolumeRenderer(nn.Module):
             rgb = rgb + (1.0 - opacity).clamp_min(0.0)[..., None] * bg
         depth = (weights * t).sum(-1) / opacity.clamp_min(1e-10)
         depth = torch.minimum(torch.maximum(depth, t_start[:, 0]), t_end[:, -1])
-
         result: dict[str, Tensor] = {
-            "rgb": rgb, "depth": depth, "opacity": opacity, "weights": weights,
-            "t": t, "deltas": deltas, "t_samples": t_samples,
+            "rgb": rgb, "depth": depth, "opacity": opacity, "weights": weights, "t": t, "t_samples": t_samples,
         }
-        if "normal" in out:
-            normal = out["normal"].reshape(R, K, 3).float()
-            result["normal"] = (weights[..., None] * normal).sum(-2)
-        if torch.is_grad_enabled():
-            result["regularizers"] = self.field.regularizers(reg_out)
+        if normal_k is not None:
+            result["normal"] = (weights[..., None] * normal_k).sum(-2)
         return result
 
     def _query_field(self, x: Tensor, d: Tensor, valid: Tensor,
@@ -329,6 +335,92 @@ class VolumeRenderer(nn.Module):
                 acc.normal = torch.zeros_like(acc.rgb)
         return acc, stop_at
 
+    def march_with_grad(self, batch: dict[str, Any], perturb: bool = False,
+                        generator: Optional[torch.Generator] = None, with_normals: bool = True) -> dict[str, Tensor]:
+        """:meth:`march` with grad: early ray termination for a view rendered once and back-propagated
+        later through the kept graph (``stylize.backprop=retain``), instead of a no-grad render and a
+        re-render at the same samples.
+
+        Sections are sampled here (``perturb``, ``generator``) and evaluated ``march_block`` at a time on
+        the rays still visible, as :meth:`march`; the stop is decided on values, the compositing is
+        differentiable. Returns :meth:`forward`'s keys (``weights`` [R,K] are zero behind each ray's stop;
+        ``t_samples``, ``t`` and ``deltas`` as :meth:`march` returns them: the sections no longer needed
+        have zero length), ``regularizers`` over every evaluated sample, and ``samples_evaluated``.
+        """
+        _check_ray_batch(batch)
+        t_samples = self.sample(batch, perturb, generator).detach()
+        if self.stop_transmittance <= 0:
+            return self.forward(batch, t_samples=t_samples, with_normals=with_normals)
+        rays_o, rays_d = batch["rays_o"].float(), batch["rays_d"].float()
+        R, K = t_samples.shape[:2]
+        t_start, t_end = t_samples[..., 0], t_samples[..., 1]
+        d_norm = rays_d.norm(dim=-1, keepdim=True)
+        dirs = rays_d / d_norm.clamp_min(1e-12)
+        t, deltas = 0.5 * (t_start + t_end), (t_end - t_start).clamp_min(0.0) * d_norm
+        blocks, stop_at = self._march_blocks_with_grad(rays_o, rays_d, dirs, t, deltas, with_normals)
+        look = int(self.field.alpha_lookahead)
+        collapse = torch.arange(K, device=t.device)[None, :] >= (stop_at + look)[:, None]
+        kept = torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
+        if not blocks:  # every ray misses the occupancy grid: forward keeps the graph alive with one probe
+            return self.forward(batch, t_samples=kept, with_normals=with_normals)
+        rows = torch.cat([b["rows"].reshape(-1) for b in blocks])
+        cols = torch.cat([b["cols"].reshape(-1) for b in blocks])
+
+        def scatter(key: str, *shape: int) -> Tensor:
+            values = torch.cat([b[key].reshape(-1, *shape) for b in blocks])
+            return values.new_zeros(R, K, *shape).index_put((rows, cols), values)
+
+        weights = scatter("weights")
+        normal_k = scatter("normal", 3) if "normal" in blocks[0] else None
+        result = self._composite(batch, dirs, kept, weights, scatter("rgb", 3), normal_k)
+        result["deltas"] = torch.where(collapse, torch.zeros_like(deltas), deltas)
+        result["regularizers"] = self.field.regularizers(_concat_samples([b["compact"] for b in blocks]))
+        result["samples_evaluated"] = torch.tensor(sum(b["evaluated"] for b in blocks))
+        return result
+
+    def _march_blocks_with_grad(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor,
+                                with_normals: bool) -> tuple[list[dict[str, Any]], Tensor]:
+        """:meth:`_march_blocks` keeping each block's differentiable weights [n,B], colours [n,B,3] (normals),
+        their ``rows``/``cols`` in [R,K] and the field's compact output. Returns the blocks and, per ray,
+        the first section not evaluated [R] (K if none)."""
+        R, K = t.shape
+        look = int(self.field.alpha_lookahead)
+        active = (deltas > 0).any(-1)
+        stop_at = torch.full((R,), K, dtype=torch.long, device=t.device)
+        log_t = torch.zeros(R, device=t.device)  # differentiable log transmittance in front of the next block
+        log_stop = math.log(self.stop_transmittance)
+        blocks: list[dict[str, Any]] = []
+        for b0 in range(0, K, self.march_block):
+            idx = active.nonzero()[:, 0]
+            if idx.numel() == 0:
+                break
+            b1 = min(K, b0 + self.march_block)
+            w1 = min(K, b1 + look)
+            dl, tt = deltas[idx, b0:w1], t[idx, b0:w1]
+            pts = rays_o[idx, None, :] + rays_d[idx, None, :] * tt[..., None]
+            dk = dirs[idx, None, :].expand(-1, w1 - b0, 3)
+            out, compact = self._query_field(pts.reshape(-1, 3), dk.reshape(-1, 3), dl.reshape(-1) > 0, with_normals)
+            alpha = self.field.alpha(out, dl, dk).float().clamp(0.0, 1.0)
+            alpha = torch.where(dl > 0, alpha, torch.zeros_like(alpha))[:, : b1 - b0]
+            log1m = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
+            block = {"weights": torch.exp(log_t[idx, None] + exclusive_cumsum(log1m)) * alpha,
+                     "rows": idx[:, None].expand(-1, b1 - b0),
+                     "cols": torch.arange(b0, b1, device=t.device).expand(idx.numel(), -1),
+                     "evaluated": int(idx.numel() * (w1 - b0))}
+            for key in ("rgb", "normal"):
+                if key in out:
+                    block[key] = out[key].reshape(-1, w1 - b0, 3)[:, : b1 - b0].float()
+            log_t = log_t.index_add(0, idx, log1m.sum(-1))
+            stops = log_t.detach()[idx] < log_stop
+            # each sample once in the regularizers: a lookahead sample joins the next block, unless the ray stops
+            own = (torch.arange(b0, w1, device=t.device)[None, :] < b1) | stops[:, None]
+            block["compact"] = _select_samples(compact, own.reshape(-1), dl.reshape(-1) > 0)
+            blocks.append(block)
+            done = idx[stops]
+            stop_at[done] = b1
+            active[done] = False
+        return blocks, stop_at
+
     @torch.no_grad()
     def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False,
                        with_normals: bool = True) -> dict[str, Tensor]:
@@ -392,3 +484,30 @@ class _MarchState:
         if self.normal is not None:
             result["normal"] = self.normal
         return result
+
+
+def _concat_samples(parts: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """One field output from several calls: per-sample tensors concatenated, other entries from the first."""
+    first = parts[0]
+    return {k: (torch.cat([p[k] for p in parts]) if torch.is_tensor(v) and v.dim() >= 1 else v)
+            for k, v in first.items()}
+
+
+def _check_ray_batch(batch: dict[str, Any]) -> None:
+    for key in ("rays_o", "rays_d", "near", "far"):
+        if key not in batch:
+            raise DataError(f"ray batch lacks {key!r}; build it with nerfart_plugin.data.rays (keys rays_o, rays_d, "
+                            "near, far).")
+
+
+def _select_samples(out: dict[str, Any], keep: Tensor, valid: Tensor) -> dict[str, Any]:
+    """The samples ``keep`` [N] of a :meth:`VolumeRenderer._query_field` output over N samples, whichever
+    way they were evaluated: all N, or only the ``valid`` [N] ones (compact). A lone probe sample stays."""
+    n = next((int(v.shape[0]) for v in out.values() if torch.is_tensor(v) and v.dim() >= 1), 0)
+    if n == keep.numel():
+        rows = keep
+    elif n == int(valid.sum()) and n > 0:
+        rows = keep[valid]
+    else:  # the probe of a block without a non-empty section
+        return out
+    return {k: (v[rows] if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == n else v) for k, v in out.items()}

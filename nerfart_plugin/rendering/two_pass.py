@@ -13,6 +13,12 @@ every sample's activations alive. Instead:
 
 Since the image is a sum of independent per-ray renders, the accumulated
 gradient equals that of full backprop (up to float summation order).
+
+Where memory allows, :func:`render_with_graph` and :func:`backprop_retained` trade
+memory for time (``stylize.backprop=retain``): pass 1 marches the view *with*
+grad and keeps its graph, pass 3 back-propagates through it, and the re-render of
+pass 3 is saved. Same samples, same gradient (up to float summation order); the
+graph holds every evaluated sample of the view.
 """
 
 from __future__ import annotations
@@ -84,12 +90,67 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
         sl = slice(s, s + patch_rays)
         sub = slice_rays(batch, sl, n)
         out = renderer(sub, perturb=False, t_samples=t_samples[sl])
-        share = out["rgb"].shape[0] / n
-        surrogate = (out["rgb"] * rgb_grad[sl]).sum()
-        for name, (lam, fn) in ray_losses.items():
-            value = fn(out, sub)
-            totals[name] += float(value.detach()) * share
-            surrogate = surrogate + lam * share * value
+        surrogate = _surrogate(out, sub, rgb_grad[sl], n, ray_losses, totals)
         with torch.autocast(surrogate.device.type, enabled=False):
             backward(surrogate)
     return totals
+
+
+def render_with_graph(renderer: VolumeRenderer, batch: dict[str, Any], chunk: int, perturb: bool = True,
+                      generator: Optional[torch.Generator] = None) -> tuple[dict[str, Tensor], list[dict[str, Tensor]]]:
+    """Pass 1, keeping the graph (``stylize.backprop=retain``): march all rays of ``batch`` with grad,
+    ``chunk`` rays at a time (:meth:`VolumeRenderer.march_with_grad`, normals and regularizers included
+    as in pass 3).
+
+    Returns ``(first, chunks)``: ``first`` as :func:`render_fixed_samples` returns it (detached ``rgb``
+    [R,3], ``depth`` [R], ``opacity`` [R], ``t_samples`` [R,K,2]); ``chunks`` the renders with their
+    graphs, for :func:`backprop_retained`.
+    """
+    n = batch["rays_o"].shape[0]
+    chunks = [renderer.march_with_grad(slice_rays(batch, slice(s, s + chunk), n), perturb=perturb,
+                                       generator=generator) for s in range(0, n, chunk)]
+    first = {k: torch.cat([c[k].detach() for c in chunks], 0) for k in ("rgb", "depth", "opacity", "t_samples")}
+    return first, chunks
+
+
+def backprop_retained(chunks: list[dict[str, Tensor]], batch: dict[str, Any], rgb_grad: Tensor,
+                      ray_losses: Optional[dict[str, tuple[float, RayLoss]]] = None,
+                      backward: Callable[[Tensor], None] = torch.autograd.backward) -> dict[str, float]:
+    """Pass 3 through the graphs :func:`render_with_graph` kept: one backward of ``sum(rgb * dL/dI)``
+    plus the ray losses, each chunk's weighted by its share of rays (as :func:`backprop_patches`).
+
+    Args:
+        chunks: the renders of :func:`render_with_graph`, in ray order.
+        batch: the full-view ray batch they rendered (per-ray targets of the ray losses).
+        rgb_grad, ray_losses, backward: as for :func:`backprop_patches` (the backward runs with autocast off).
+
+    Returns:
+        the value of each ray loss (mean over all rays), for logging.
+    """
+    n = batch["rays_o"].shape[0]
+    ray_losses = {k: v for k, v in (ray_losses or {}).items() if v[0] != 0.0}
+    totals = {k: 0.0 for k in ray_losses}
+    surrogate, s = None, 0
+    for out in chunks:
+        sl = slice(s, s + out["rgb"].shape[0])
+        term = _surrogate(out, slice_rays(batch, sl, n), rgb_grad[sl], n, ray_losses, totals)
+        surrogate = term if surrogate is None else surrogate + term
+        s = sl.stop
+    if s != n:
+        raise ValueError(f"the retained chunks render {s} rays, the batch has {n}: pass the batch they rendered")
+    with torch.autocast(surrogate.device.type, enabled=False):
+        backward(surrogate)
+    return totals
+
+
+def _surrogate(out: dict[str, Tensor], rays: dict[str, Any], rgb_grad: Tensor, n: int,
+               ray_losses: dict[str, tuple[float, RayLoss]], totals: dict[str, float]) -> Tensor:
+    """``sum(rgb * dL/dI)`` of one patch plus its ray losses weighted by its share of the ``n`` rays;
+    adds each loss's share to ``totals``."""
+    share = out["rgb"].shape[0] / n
+    surrogate = (out["rgb"] * rgb_grad).sum()
+    for name, (lam, fn) in ray_losses.items():
+        value = fn(out, rays)
+        totals[name] += float(value.detach()) * share
+        surrogate = surrogate + lam * share * value
+    return surrogate

@@ -13,7 +13,9 @@ Each term is one row of :data:`STYLIZATION_IMAGE_LOSSES` (on the rendered view) 
 :data:`STYLIZATION_RAY_LOSSES` (per ray, with grad), weighted by ``experiment.lambda_<name>``.
 Each step renders one view without grad, takes dL/dI, and back-propagates it
 through the field patch by patch at identical samples (Section 4.4,
-:mod:`nerfart_plugin.rendering.two_pass`). Terms with λ = 0 are not computed.
+:mod:`nerfart_plugin.rendering.two_pass`); ``stylize.backprop=retain`` renders the view
+once with grad and back-propagates through its kept graph instead (the same gradient,
+more memory, no re-render). Terms with λ = 0 are not computed.
 The field's regularizers join the ray terms (:mod:`nerfart_plugin.systems.loss_terms`):
 SDF backbones keep the eikonal term of the reconstruction (``experiment.lambda_eikonal``,
 not part of Eq. 8) so that the moving surface stays a distance field, as the official
@@ -38,6 +40,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.guidance import NegativeSampler, random_patches
 from nerfart_plugin.guidance.patches import subject_box
 from nerfart_plugin.losses import (
@@ -48,8 +51,9 @@ from nerfart_plugin.losses import (
     silhouette_loss,
     weight_regularization,
 )
-from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
-from nerfart_plugin.schema import ExperimentConfig, RenderConfig, StylizeConfig, section
+from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
+                                               render_with_graph)
+from nerfart_plugin.schema import MAX_GRAD_SAMPLES, ExperimentConfig, RenderConfig, StylizeConfig, section
 from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed, to_device
 from nerfart_plugin.systems.callbacks import check_finite_grads
 from nerfart_plugin.systems.loss_terms import LossTerm, compute, regularizer_weights, weighted_sum, weights_of
@@ -163,6 +167,7 @@ class StylizationSystem(RenderSystem):
             for p in self.field.geometry_parameters():
                 p.requires_grad_(False)
         self._init_loss_weights()
+        self._check_retained_graph_fits()
         self.occupancy_every = 0 if self.freeze_geometry else self.cfg.occupancy_update_every
         if self.occupancy_every > 0:  # the SDF band the moving surface is sampled in
             self.renderer.widen_occupancy_band(self.cfg.occupancy_band)
@@ -172,6 +177,19 @@ class StylizationSystem(RenderSystem):
         self.neg_sampler: Optional[NegativeSampler] = None
         self._cache: dict[int, dict[str, Any]] = {}
         self.timings: dict[str, float] = {}
+
+    def _check_retained_graph_fits(self) -> None:
+        """``stylize.backprop=retain`` keeps a view's whole graph: refuse views whose samples (rays x samples
+        per ray) exceed what one step with grad may hold (:data:`nerfart_plugin.schema.MAX_GRAD_SAMPLES`)."""
+        if self.cfg.backprop != "retain" or not self.views:
+            return
+        rays = max(int(v["rays_o"].shape[0]) for v in self.views)
+        samples = rays * self.renderer.num_samples
+        if samples > MAX_GRAD_SAMPLES:
+            raise ConfigError(f"stylize.backprop=retain keeps the graph of a whole view: {rays:,} rays x "
+                              f"{self.renderer.num_samples} samples = {samples:,} samples, more than the "
+                              f"{MAX_GRAD_SAMPLES:,} one step with grad may hold; use stylize.backprop=patch (the "
+                              "paper's, memory bounded by stylize.patch_size) or a lower stylize.resolution")
 
     def _init_loss_weights(self) -> None:
         geometry_off = [t.name for t in STYLIZATION_RAY_LOSSES if t.geometry] if self.freeze_geometry else []
@@ -288,7 +306,7 @@ class StylizationSystem(RenderSystem):
         first, img, terms, image_loss, rgb_grad, t2 = self.image_pass(view, src, g, step)
         t3 = time.perf_counter()
         ray_losses = self.ray_losses()
-        ray_terms = self.patch_pass(view, src, first["t_samples"], rgb_grad, ray_losses, step)
+        ray_terms = self.patch_pass(view, src, first, rgb_grad, ray_losses, step)
         t4 = time.perf_counter()
         total = float(image_loss.detach()) if terms else 0.0
         total += sum(ray_losses[k][0] * v for k, v in ray_terms.items())
@@ -296,10 +314,15 @@ class StylizationSystem(RenderSystem):
         self._save_render(step, src, img)
 
     def image_pass(self, view: dict[str, Any], src: dict[str, Any], g: torch.Generator, step: int) -> tuple:
-        """Pass 1: the full view without grad at samples fixed for this step, the image terms and dL/dI.
+        """Pass 1: the full view at samples fixed for this step (without grad; ``stylize.backprop=retain``:
+        with grad, the render's graph kept in ``render["chunks"]``), the image terms and dL/dI.
         Returns ``(render, img [1,3,H,W], terms, weighted loss, dL/dI [H*W,3], time after rendering)``."""
         H, W = view["H"], view["W"]
-        first = render_fixed_samples(self.renderer, view, self.cfg.chunk, perturb=True)
+        if self.cfg.backprop == "retain":
+            first, chunks = render_with_graph(self.renderer, view, self.cfg.chunk, perturb=True)
+            first["chunks"] = chunks
+        else:
+            first = render_fixed_samples(self.renderer, view, self.cfg.chunk, perturb=True)
         t_render = time.perf_counter()
         img = first["rgb"].reshape(H, W, 3).permute(2, 0, 1)[None].clone().requires_grad_(True)
         terms = self.image_losses(img, src, g)
@@ -309,16 +332,21 @@ class StylizationSystem(RenderSystem):
                         else torch.zeros_like(first["rgb"]))
         return first, img, terms, image_loss, rgb_grad, t_render
 
-    def patch_pass(self, view: dict[str, Any], src: dict[str, Any], t_samples: Tensor, rgb_grad: Tensor,
+    def patch_pass(self, view: dict[str, Any], src: dict[str, Any], first: dict[str, Any], rgb_grad: Tensor,
                    ray_losses: dict[str, tuple[float, Any]], step: int) -> dict[str, float]:
-        """Pass 2: re-render patches with grad at the same samples, back-propagate dL/dI and the ray
-        terms, then one optimizer step. Returns each ray term's value (mean over the view's rays)."""
+        """Pass 2: re-render patches with grad at the samples of pass 1's ``first`` render (or, with
+        ``stylize.backprop=retain``, use the graph it kept), back-propagate dL/dI and the ray terms, then
+        one optimizer step. Returns each ray term's value (mean over the view's rays)."""
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
         if self.lambdas["silhouette"] > 0:
             view = {**view, "source_opacity": src["opacity"]}
-        ray_terms = backprop_patches(self.renderer, view, t_samples, rgb_grad, self.cfg.patch_size ** 2,
-                                     ray_losses, backward=self.manual_backward)
+        if "chunks" in first:
+            ray_terms = backprop_retained(first.pop("chunks"), view, rgb_grad, ray_losses,
+                                          backward=self.manual_backward)
+        else:
+            ray_terms = backprop_patches(self.renderer, view, first["t_samples"], rgb_grad, self.cfg.patch_size ** 2,
+                                         ray_losses, backward=self.manual_backward)
         check_finite_grads(self, step)
         opt.step()
         return ray_terms
