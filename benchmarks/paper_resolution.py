@@ -321,17 +321,25 @@ def _headroom(rows: list[dict[str, Any]]) -> list[str]:
     return ["", "What the goal leaves (same figures):", "", *lines] if lines else []
 
 
-def _mixed(rows: list[dict[str, Any]]) -> list[str]:
-    """Mixed-precision rows against the float32 row of the same scene and guide: time and fidelity."""
+def _versus_baseline(rows: list[dict[str, Any]], marker: str, setting: str,
+                     extra: Any) -> list[list[str]]:
+    """Table rows for the part-1 rows that carry ``marker``, against the float32 patch row of the same scene
+    and guide: scene, guide, the row's ``setting``, step and field-work speed-ups, then ``extra(row)``."""
     f = common.fmt
     base = {(r["scene"], r["guide"]): r for r in rows if _is_baseline(r)}
     out = []
     for r in rows:
         ref = base.get((r["scene"], r["guide"]))
-        if "render_db" in r and ref is not None:
-            out.append([r["scene"], r["guide"], r["precision"], f(ref["step"] / r["step"]),
-                        f((ref["render"] + ref["backprop"]) / (r["render"] + r["backprop"])),
-                        f(r["render_db"], ".1f"), f(r["grad_cos"], ".5f")])
+        if marker in r and ref is not None:
+            out.append([r["scene"], r["guide"], r[setting], f(ref["step"] / r["step"]),
+                        f((ref["render"] + ref["backprop"]) / (r["render"] + r["backprop"])), *extra(r)])
+    return out
+
+
+def _mixed(rows: list[dict[str, Any]]) -> list[str]:
+    """Mixed-precision rows against the float32 row of the same scene and guide: time and fidelity."""
+    f = common.fmt
+    out = _versus_baseline(rows, "render_db", "precision", lambda r: [f(r["render_db"], ".1f"), f(r["grad_cos"], ".5f")])
     if not out:
         return []
     return ["", "Mixed precision (`trainer.precision`): the field's colour net under autocast (its geometry net, "
@@ -347,14 +355,8 @@ def _retained(rows: list[dict[str, Any]]) -> list[str]:
     """``stylize.backprop`` rows against the patch-backprop row of the same scene and guide: time, the graph
     autograd keeps, the gradient's agreement."""
     f = common.fmt
-    base = {(r["scene"], r["guide"]): r for r in rows if _is_baseline(r)}
-    out = []
-    for r in rows:
-        ref = base.get((r["scene"], r["guide"]))
-        if "graph_view_mib" in r and ref is not None:
-            out.append([r["scene"], r["guide"], r["backprop_mode"], f(ref["step"] / r["step"]),
-                        f((ref["render"] + ref["backprop"]) / (r["render"] + r["backprop"])),
-                        f(r["graph_patch_mib"], ".0f"), f(r["graph_view_mib"], ".0f"), f(r["grad_cos"], ".5f")])
+    out = _versus_baseline(rows, "graph_view_mib", "backprop_mode", lambda r: [
+        f(r["graph_patch_mib"], ".0f"), f(r["graph_view_mib"], ".0f"), f(r["grad_cos"], ".5f")])
     if not out:
         return []
     return ["", "Memory for time (`stylize.backprop`): `retain` renders the view once with grad (marched, early "
