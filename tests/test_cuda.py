@@ -11,7 +11,8 @@ import torch
 
 from pipeline_helpers import tiny_cfg
 
-from render_helpers import check_sharp_surface_under_autocast, front_view, tiny_renderer
+from render_helpers import (check_retained_graph_matches_the_patches, check_sharp_surface_under_autocast,
+                            front_view, tiny_renderer)
 
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 from nerfart_plugin.systems.base import to_device
@@ -69,6 +70,12 @@ def test_two_pass_backprop_is_exact_on_cuda(backbone: str) -> None:
     worst = max(float((p.grad - ref[n]).abs().max() / ref[n].abs().max().clamp_min(1e-12))
                 for n, p in r.named_parameters() if n in ref)
     assert worst <= 1e-4, f"max relative gradient difference {worst:.2e}"
+
+
+@pytest.mark.parametrize("backbone", ["nerf", "volsdf", "neus"])
+def test_retained_graph_backprop_matches_the_patches_on_cuda(backbone: str) -> None:
+    """stylize.backprop=retain on the GPU: the patch backprop's gradient through the kept graph."""
+    check_retained_graph_matches_the_patches(backbone, 8, torch.device("cuda"))
 
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
