@@ -113,14 +113,10 @@ def retained_graph_cost(ctx: Any, view: dict[str, Any], samples: int, chunk: int
     random image gradient, same samples (the ray terms aside)."""
     import torch
 
-    from nerfart_plugin.factories import build_renderer
     from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
                                                    render_with_graph)
 
-    r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
-    r.load_state_dict(ctx.source_state)
-    r.num_samples = samples
-    img_grad = torch.randn(view["rays_o"].shape[0], 3, generator=torch.Generator().manual_seed(0)) * 1e-3
+    r, img_grad = source_field_and_image_gradient(ctx, view, samples)
 
     def grads() -> torch.Tensor:
         out = torch.cat([p.grad.flatten() for p in r.parameters() if p.grad is not None])
@@ -176,21 +172,29 @@ class SavedBytes:
         self._hooks.__exit__(*exc)
 
 
+def source_field_and_image_gradient(ctx: Any, view: dict[str, Any], samples: int) -> tuple[Any, Any]:
+    """The source field's renderer at ``samples`` per ray, and a fixed random image gradient [R,3] for ``view``."""
+    import torch
+
+    from nerfart_plugin.factories import build_renderer
+
+    r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
+    r.load_state_dict(ctx.source_state)
+    r.num_samples = samples
+    return r, torch.randn(view["rays_o"].shape[0], 3, generator=torch.Generator().manual_seed(0)) * 1e-3
+
+
 def mixed_fidelity(ctx: Any, view: dict[str, Any], samples: int, precision: str) -> dict[str, Any]:
     """What ``trainer.precision`` (a ``*-mixed`` one) changes in the source field's render of ``view`` and in
     the field's parameter gradient of one two-pass backprop (a fixed random image gradient): PSNR (dB) and
     cosine against float32, same samples."""
     import torch
 
-    from nerfart_plugin.factories import build_renderer
     from nerfart_plugin.losses import psnr
     from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 
     dtype = torch.bfloat16 if precision.startswith("bf16") else torch.float16
-    r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
-    r.load_state_dict(ctx.source_state)
-    r.num_samples = samples
-    img_grad = torch.randn(view["rays_o"].shape[0], 3, generator=torch.Generator().manual_seed(0)) * 1e-3
+    r, img_grad = source_field_and_image_gradient(ctx, view, samples)
 
     def render_and_grad(mixed: bool) -> tuple[torch.Tensor, torch.Tensor]:
         r.zero_grad(set_to_none=True)

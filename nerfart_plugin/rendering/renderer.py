@@ -296,12 +296,18 @@ class VolumeRenderer(nn.Module):
         dirs = rays_d / d_norm.clamp_min(1e-12)
         acc, stop_at = self._march_blocks(rays_o, rays_d, dirs, 0.5 * (t_start + t_end),
                                           (t_end - t_start).clamp_min(0.0) * d_norm, with_normals)
-        look = int(self.field.alpha_lookahead)
-        collapse = torch.arange(t_samples.shape[1], device=t_start.device)[None, :] >= (stop_at + look)[:, None]
         result = acc.finish(self._background(batch, dirs), t_start[:, 0], t_end[:, -1])
-        result["t_samples"] = torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
+        result["t_samples"] = self._collapse_behind_stop(t_samples, stop_at)
         result["samples_evaluated"] = torch.tensor(acc.evaluated)
         return result
+
+    def _collapse_behind_stop(self, t_samples: Tensor, stop_at: Tensor) -> Tensor:
+        """``t_samples`` [R,K,2] with zero length from each ray's ``stop_at`` [R] on, past the samples the
+        field's opacities read (:attr:`Field.alpha_lookahead`): what a re-render need not evaluate."""
+        t_start, t_end = t_samples[..., 0], t_samples[..., 1]
+        look = int(self.field.alpha_lookahead)
+        collapse = torch.arange(t_samples.shape[1], device=t_samples.device)[None, :] >= (stop_at + look)[:, None]
+        return torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
 
     def _march_blocks(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor,
                       with_normals: bool) -> tuple["_MarchState", Tensor]:
@@ -319,13 +325,8 @@ class VolumeRenderer(nn.Module):
                 break
             b1 = min(K, b0 + self.march_block)
             w1 = min(K, b1 + look)  # the block and the samples its opacities read
-            dl, tt = deltas[idx, b0:w1], t[idx, b0:w1]
-            pts = rays_o[idx, None, :] + rays_d[idx, None, :] * tt[..., None]
-            dk = dirs[idx, None, :].expand(-1, w1 - b0, 3)
-            out, _ = self._query_field(pts.reshape(-1, 3), dk.reshape(-1, 3), dl.reshape(-1) > 0, with_normals)
-            alpha = self.field.alpha(out, dl, dk).float()
-            alpha = torch.where(dl > 0, alpha, torch.zeros_like(alpha))[:, : b1 - b0]
-            acc.add(idx, alpha, tt[:, : b1 - b0], out, w1 - b0)
+            out, _, alpha = self._evaluate_block(rays_o, rays_d, dirs, t, deltas, idx, b0, b1, w1, with_normals)
+            acc.add(idx, alpha, t[idx, b0:b1], out, w1 - b0)
             done = idx[acc.log_t[idx] < log_stop]
             stop_at[done] = b1
             active[done] = False
@@ -334,6 +335,18 @@ class VolumeRenderer(nn.Module):
             if "normal" in probe:
                 acc.normal = torch.zeros_like(acc.rgb)
         return acc, stop_at
+
+    def _evaluate_block(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor, idx: Tensor,
+                        b0: int, b1: int, w1: int, with_normals: bool) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor]:
+        """The field on sections ``b0:w1`` (a block ``b0:b1`` and the samples its opacities read) of rays ``idx``:
+        its output over the [n, w1-b0] samples, its compact output (:meth:`_query_field`) and the block's
+        opacities [n, b1-b0] (zero on empty sections)."""
+        dl = deltas[idx, b0:w1]
+        pts = rays_o[idx, None, :] + rays_d[idx, None, :] * t[idx, b0:w1, None]
+        dk = dirs[idx, None, :].expand(-1, w1 - b0, 3)
+        out, compact = self._query_field(pts.reshape(-1, 3), dk.reshape(-1, 3), dl.reshape(-1) > 0, with_normals)
+        alpha = self.field.alpha(out, dl, dk).float()
+        return out, compact, torch.where(dl > 0, alpha, torch.zeros_like(alpha))[:, : b1 - b0]
 
     def march_with_grad(self, batch: dict[str, Any], perturb: bool = False,
                         generator: Optional[torch.Generator] = None, with_normals: bool = True) -> dict[str, Tensor]:
@@ -358,9 +371,7 @@ class VolumeRenderer(nn.Module):
         dirs = rays_d / d_norm.clamp_min(1e-12)
         t, deltas = 0.5 * (t_start + t_end), (t_end - t_start).clamp_min(0.0) * d_norm
         blocks, stop_at = self._march_blocks_with_grad(rays_o, rays_d, dirs, t, deltas, with_normals)
-        look = int(self.field.alpha_lookahead)
-        collapse = torch.arange(K, device=t.device)[None, :] >= (stop_at + look)[:, None]
-        kept = torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
+        kept = self._collapse_behind_stop(t_samples, stop_at)
         if not blocks:  # every ray misses the occupancy grid: forward keeps the graph alive with one probe
             return self.forward(batch, t_samples=kept, with_normals=with_normals)
         rows = torch.cat([b["rows"].reshape(-1) for b in blocks])
@@ -373,7 +384,7 @@ class VolumeRenderer(nn.Module):
         weights = scatter("weights")
         normal_k = scatter("normal", 3) if "normal" in blocks[0] else None
         result = self._composite(batch, dirs, kept, weights, scatter("rgb", 3), normal_k)
-        result["deltas"] = torch.where(collapse, torch.zeros_like(deltas), deltas)
+        result["deltas"] = (kept[..., 1] - kept[..., 0]).clamp_min(0.0) * d_norm
         result["regularizers"] = self.field.regularizers(_concat_samples([b["compact"] for b in blocks]))
         result["samples_evaluated"] = torch.tensor(sum(b["evaluated"] for b in blocks))
         return result
@@ -396,12 +407,8 @@ class VolumeRenderer(nn.Module):
                 break
             b1 = min(K, b0 + self.march_block)
             w1 = min(K, b1 + look)
-            dl, tt = deltas[idx, b0:w1], t[idx, b0:w1]
-            pts = rays_o[idx, None, :] + rays_d[idx, None, :] * tt[..., None]
-            dk = dirs[idx, None, :].expand(-1, w1 - b0, 3)
-            out, compact = self._query_field(pts.reshape(-1, 3), dk.reshape(-1, 3), dl.reshape(-1) > 0, with_normals)
-            alpha = self.field.alpha(out, dl, dk).float().clamp(0.0, 1.0)
-            alpha = torch.where(dl > 0, alpha, torch.zeros_like(alpha))[:, : b1 - b0]
+            out, compact, alpha = self._evaluate_block(rays_o, rays_d, dirs, t, deltas, idx, b0, b1, w1, with_normals)
+            alpha = alpha.clamp(0.0, 1.0)  # as weights_from_alpha, so the weights are forward's
             log1m = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
             block = {"weights": torch.exp(log_t[idx, None] + exclusive_cumsum(log1m)) * alpha,
                      "rows": idx[:, None].expand(-1, b1 - b0),
@@ -414,7 +421,7 @@ class VolumeRenderer(nn.Module):
             stops = log_t.detach()[idx] < log_stop
             # each sample once in the regularizers: a lookahead sample joins the next block, unless the ray stops
             own = (torch.arange(b0, w1, device=t.device)[None, :] < b1) | stops[:, None]
-            block["compact"] = _select_samples(compact, own.reshape(-1), dl.reshape(-1) > 0)
+            block["compact"] = _select_samples(compact, own.reshape(-1), deltas[idx, b0:w1].reshape(-1) > 0)
             blocks.append(block)
             done = idx[stops]
             stop_at[done] = b1

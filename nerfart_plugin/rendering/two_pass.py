@@ -84,8 +84,7 @@ def backprop_patches(renderer: VolumeRenderer, batch: dict[str, Any], t_samples:
         the value of each ray loss (mean over all rays), for logging.
     """
     n = batch["rays_o"].shape[0]
-    ray_losses = {k: v for k, v in (ray_losses or {}).items() if v[0] != 0.0}
-    totals = {k: 0.0 for k in ray_losses}
+    ray_losses, totals = _active(ray_losses)
     for s in range(0, n, patch_rays):
         sl = slice(s, s + patch_rays)
         sub = slice_rays(batch, sl, n)
@@ -128,8 +127,7 @@ def backprop_retained(chunks: list[dict[str, Tensor]], batch: dict[str, Any], rg
         the value of each ray loss (mean over all rays), for logging.
     """
     n = batch["rays_o"].shape[0]
-    ray_losses = {k: v for k, v in (ray_losses or {}).items() if v[0] != 0.0}
-    totals = {k: 0.0 for k in ray_losses}
+    ray_losses, totals = _active(ray_losses)
     surrogate, s = None, 0
     for out in chunks:
         sl = slice(s, s + out["rgb"].shape[0])
@@ -141,6 +139,13 @@ def backprop_retained(chunks: list[dict[str, Tensor]], batch: dict[str, Any], rg
     with torch.autocast(surrogate.device.type, enabled=False):
         backward(surrogate)
     return totals
+
+
+def _active(ray_losses: Optional[dict[str, tuple[float, RayLoss]]]) -> tuple[dict[str, tuple[float, RayLoss]],
+                                                                          dict[str, float]]:
+    """The ray losses with a non-zero λ, and their running totals (0)."""
+    active = {k: v for k, v in (ray_losses or {}).items() if v[0] != 0.0}
+    return active, {k: 0.0 for k in active}
 
 
 def _surrogate(out: dict[str, Tensor], rays: dict[str, Any], rgb_grad: Tensor, n: int,
