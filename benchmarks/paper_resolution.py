@@ -315,14 +315,31 @@ def _is_baseline(row: dict[str, Any]) -> bool:
 
 
 def _headroom(rows: list[dict[str, Any]]) -> list[str]:
-    """What the goal leaves besides the guidance passes, against what the field work alone measured."""
+    """What the goal leaves besides the guidance passes, against what the field work alone measured and
+    against the two passes every step runs whatever its backprop (pass 1 and the perceptual network)."""
     f = common.fmt
     lines = [f"- {r['scene']} / {r['guide']}{_precision_label(r)}: at {TARGET_RATIO}x the rest of the step (both "
              f"render passes, the perceptual network, the loss arithmetic) would have to fit in {f(r['floor'] * (TARGET_RATIO - 1))} s; "
              f"the field work alone (pass 1 + pass 2) took {f(r['render'] + r['backprop'])} s "
              f"({f((r['render'] + r['backprop']) / r['floor'])}x the floor), the losses beyond the floor "
-             f"{f(max(0.0, r['losses'] - r['floor']))} s." for r in rows if r.get("floor")]
+             f"{f(max(0.0, r['losses'] - r['floor']))} s.{_unavoidable(r)}" for r in rows if r.get("floor")]
     return ["", "What the goal leaves (same figures):", "", *lines] if lines else []
+
+
+def _unavoidable(row: dict[str, Any]) -> str:
+    """What a patch-backprop step runs whatever its backprop costs: the no-grad render, plus the perceptual
+    network's forward+backward where the row timed it. Their sum over the goal's allowance puts the goal out
+    of reach at this field's cost per sample. Empty for other backprop modes (their pass 1 keeps a graph)."""
+    if row.get("backprop_mode", "patch") != "patch":
+        return ""
+    f, allowance = common.fmt, row["floor"] * (TARGET_RATIO - 1)
+    parts = [("the no-grad render", row["render"])]
+    if row.get("perceptual_auto") is not None:
+        parts.append(("the perceptual network", row["perceptual_auto"]))
+    total = sum(seconds for _, seconds in parts)
+    verdict = "more than the allowance" if total > allowance else "within the allowance"
+    named = " and ".join(f"{name} ({f(seconds)} s)" for name, seconds in parts)
+    return f" What every step runs whatever its backprop costs, {named}, takes {f(total)} s: {verdict}."
 
 
 def _versus_baseline(rows: list[dict[str, Any]], marker: str, setting: str,

@@ -137,6 +137,22 @@ def test_paper_resolution_times_both_precisions() -> None:
         assert a.shape == b.shape and torch.nn.functional.cosine_similarity(a, b).min() > 0.999
 
 
+def test_paper_resolution_headroom_names_what_every_step_runs() -> None:
+    """The goal's allowance against the no-grad render plus the perceptual network (patch rows only): over it,
+    the goal is out of reach whatever the backprop costs; within it, the report says so."""
+    mod = _load("paper_resolution")
+    row = {"scene": "head", "guide": "clip", "floor": 1.0, "render": 0.2, "backprop": 0.5, "losses": 1.2,
+           "perceptual_auto": 0.15}
+    lines = "\n".join(mod._headroom([row]))
+    assert "fit in 0.30 s" in lines
+    assert "the no-grad render (0.20 s) and the perceptual network (0.15 s), takes 0.35 s: more than the allowance" \
+        in lines
+    assert "takes 0.25 s: within the allowance" in "\n".join(mod._headroom([{**row, "perceptual_auto": 0.05}]))
+    untimed = "\n".join(mod._headroom([{**row, "perceptual_auto": None}]))
+    assert "the no-grad render (0.20 s), takes 0.20 s: within" in untimed and "perceptual network (" not in untimed
+    assert "whatever its backprop" not in "\n".join(mod._headroom([{**row, "backprop_mode": "retain"}]))
+
+
 def test_tradeoff_quick(out: Path) -> None:
     mod = _load("tradeoff")
     first = out.parent / "first.json"
