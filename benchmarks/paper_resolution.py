@@ -319,11 +319,16 @@ def _headroom(rows: list[dict[str, Any]]) -> list[str]:
     against the two passes every step runs whatever its backprop (pass 1 and the perceptual network)."""
     f = common.fmt
     lines = [f"- {r['scene']} / {r['guide']}{_precision_label(r)}: at {TARGET_RATIO}x the rest of the step (both "
-             f"render passes, the perceptual network, the loss arithmetic) would have to fit in {f(r['floor'] * (TARGET_RATIO - 1))} s; "
+             f"render passes, the perceptual network, the loss arithmetic) would have to fit in {f(_allowance(r))} s; "
              f"the field work alone (pass 1 + pass 2) took {f(r['render'] + r['backprop'])} s "
              f"({f((r['render'] + r['backprop']) / r['floor'])}x the floor), the losses beyond the floor "
              f"{f(max(0.0, r['losses'] - r['floor']))} s.{_unavoidable(r)}" for r in rows if r.get("floor")]
     return ["", "What the goal leaves (same figures):", "", *lines] if lines else []
+
+
+def _allowance(row: dict[str, Any]) -> float:
+    """Seconds the goal leaves a step besides its guidance floor."""
+    return row["floor"] * (TARGET_RATIO - 1)
 
 
 def _unavoidable(row: dict[str, Any]) -> str:
@@ -332,12 +337,12 @@ def _unavoidable(row: dict[str, Any]) -> str:
     of reach at this field's cost per sample. Empty for other backprop modes (their pass 1 keeps a graph)."""
     if row.get("backprop_mode", "patch") != "patch":
         return ""
-    f, allowance = common.fmt, row["floor"] * (TARGET_RATIO - 1)
+    f = common.fmt
     parts = [("the no-grad render", row["render"])]
     if row.get("perceptual_auto") is not None:
         parts.append(("the perceptual network", row["perceptual_auto"]))
     total = sum(seconds for _, seconds in parts)
-    verdict = "more than the allowance" if total > allowance else "within the allowance"
+    verdict = "more than the allowance" if total > _allowance(row) else "within the allowance"
     named = " and ".join(f"{name} ({f(seconds)} s)" for name, seconds in parts)
     return f" What every step runs whatever its backprop costs, {named}, takes {f(total)} s: {verdict}."
 

@@ -19,7 +19,7 @@ from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.fields.base import Field
 from nerfart_plugin.fields.occupancy import OccupancyGrid
 from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples, weighted_samples
-from nerfart_plugin.rendering.volume import ALPHA_T_EPS, exclusive_cumsum, weights_from_alpha
+from nerfart_plugin.rendering.volume import block_weights, weights_from_alpha
 
 __all__ = ["VolumeRenderer"]
 
@@ -409,15 +409,15 @@ class VolumeRenderer(nn.Module):
             w1 = min(K, b1 + look)
             out, compact, alpha = self._evaluate_block(rays_o, rays_d, dirs, t, deltas, idx, b0, b1, w1, with_normals)
             alpha = alpha.clamp(0.0, 1.0)  # as weights_from_alpha, so the weights are forward's
-            log1m = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
-            block = {"weights": torch.exp(log_t[idx, None] + exclusive_cumsum(log1m)) * alpha,
+            weights, log_t_block = block_weights(alpha, log_t[idx])
+            block = {"weights": weights,
                      "rows": idx[:, None].expand(-1, b1 - b0),
                      "cols": torch.arange(b0, b1, device=t.device).expand(idx.numel(), -1),
                      "evaluated": int(idx.numel() * (w1 - b0))}
             for key in ("rgb", "normal"):
                 if key in out:
                     block[key] = out[key].reshape(-1, w1 - b0, 3)[:, : b1 - b0].float()
-            log_t = log_t.index_add(0, idx, log1m.sum(-1))
+            log_t = log_t.index_add(0, idx, log_t_block)
             stops = log_t.detach()[idx] < log_stop
             # each sample once in the regularizers: a lookahead sample joins the next block, unless the ray stops
             own = (torch.arange(b0, w1, device=t.device)[None, :] < b1) | stops[:, None]
@@ -470,8 +470,7 @@ class _MarchState:
         """Composite one block: ``alpha`` [n,B] and midpoints ``t`` [n,B] of rays ``idx`` [n]; ``out``
         the field's output over [n, width] samples (the block plus its lookahead)."""
         n, B = alpha.shape
-        log1m = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
-        w = torch.exp(self.log_t[idx, None] + exclusive_cumsum(log1m)) * alpha
+        w, log_t_block = block_weights(alpha, self.log_t[idx])
         self.rgb[idx] += (w[..., None] * out["rgb"].reshape(n, width, 3)[:, :B].float()).sum(1)
         self.depth[idx] += (w * t).sum(-1)
         self.opacity[idx] += w.sum(-1)
@@ -479,7 +478,7 @@ class _MarchState:
             if self.normal is None:
                 self.normal = torch.zeros_like(self.rgb)
             self.normal[idx] += (w[..., None] * out["normal"].reshape(n, width, 3)[:, :B].float()).sum(1)
-        self.log_t[idx] += log1m.sum(-1)
+        self.log_t[idx] += log_t_block
         self.evaluated += int(n * width)
 
     def finish(self, bg: Optional[Tensor], t_first: Tensor, t_last: Tensor) -> dict[str, Tensor]:

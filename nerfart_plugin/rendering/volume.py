@@ -40,6 +40,7 @@ NEUS_EPS = 1e-5
 __all__ = [
     "volume_weights",
     "weights_from_alpha",
+    "block_weights",
     "volsdf_density",
     "neus_alpha",
     "neus_alpha_sections",
@@ -96,6 +97,24 @@ def weights_from_alpha(alpha: Tensor) -> tuple[Tensor, Tensor]:
     log_one_minus = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
     transmittance = torch.exp(exclusive_cumsum(log_one_minus))
     return transmittance * alpha, transmittance
+
+
+def block_weights(alpha: Tensor, log_transmittance: Tensor) -> tuple[Tensor, Tensor]:
+    """Eq. 1 weights of a block of sections behind the part of the ray already composited (a ray marched a
+    few sections at a time): ``w_k = T alpha_k prod_{j<k in the block}(1 - alpha_j)``, in log space with
+    the clamp of :func:`weights_from_alpha`.
+
+    Args:
+        alpha: [n,B] opacities in [0,1] of the block's sections, front to back.
+        log_transmittance: [n] log of the transmittance T in front of the block.
+
+    Returns:
+        ``(weights [n,B], log transmittance through the block [n])``: add the second to
+        ``log_transmittance`` for the next block.
+    """
+    log_one_minus = torch.log((1.0 - alpha).clamp_min(ALPHA_T_EPS))
+    weights = torch.exp(log_transmittance[:, None] + exclusive_cumsum(log_one_minus)) * alpha
+    return weights, log_one_minus.sum(-1)
 
 
 def volsdf_density(sdf: Tensor, beta: Tensor | float) -> Tensor:
