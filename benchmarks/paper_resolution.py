@@ -57,7 +57,8 @@ GUIDES: dict[str, list[str]] = {
 MIXED, MIXED_GUIDE = ("bf16-mixed", "16-mixed"), "clip (random weights)"
 #: ``stylize.backprop`` modes part 1 also times (float32, the same guide) against the paper's patches
 BACKPROPS = ("retain",)
-QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1000", "render.occupancy.resolution=16"]
+QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1000", "render.occupancy.resolution=16",
+         "export.enabled=false"]
 
 
 # --------------------------------------------------------------------------- part 1
@@ -282,7 +283,7 @@ def paper_job(data_root: Path, out: Path, device: str, quick: bool, prompt: str 
     base = ["data=h3ds", f"data.path={data_root / 'fangzhou_nature'}", "preset=paper_res", "guidance=imagenet",
             f"prompt={json.dumps(prompt)}", f"device={device}", f"output_root={out}", "export.texture=false"]
     if quick:
-        base += ["reconstruct.steps=200", "stylize.epochs=1", "stylize.video_frames=2", "export.resolution=64",
+        base += ["reconstruct.steps=200", "stylize.epochs=null", "stylize.steps=4", "stylize.video_frames=2", "export.resolution=64",
                  "data.resolution=64"]
     rec, rec_s, rec_mem = _timed_run([*base, "stage=reconstruct"], device)
     sty, sty_s, sty_mem = _timed_run([*base, "stage=stylize"], device)

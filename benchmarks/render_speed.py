@@ -47,7 +47,8 @@ SCENES: dict[str, list[str]] = {
 }
 REFERENCE_SAMPLES = 256
 TARGET_SECONDS, TARGET_PSNR = 1.5, 40.0
-QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1000", "render.occupancy.resolution=16"]
+QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1000", "render.occupancy.resolution=16",
+         "export.enabled=false"]
 
 
 def trained_scene(overrides: list[str]) -> tuple[Any, dict]:

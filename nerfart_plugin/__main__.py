@@ -101,7 +101,14 @@ def main() -> None:
         log.error("ConfigError: %s", exc)
         sys.exit(2)
     sys.argv = [sys.argv[0], *argv]
+    from nerfart_plugin import sweep
+
+    sweep.failed_jobs.clear()
     _app()
+    if sweep.failed_jobs:  # a multirun kept going past failed jobs; schedulers and scripts see it in the exit code
+        log.error("%d sweep job(s) failed: %s (their errors are in the sweep's summary.md)", len(sweep.failed_jobs),
+                  ", ".join(map(str, sweep.failed_jobs)))
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,9 @@ ConfigError naming the distribution and the entry point.
 
 from __future__ import annotations
 
+import functools
 import logging
+import sys
 from importlib.metadata import EntryPoint, entry_points
 
 from nerfart_plugin.errors import ConfigError
@@ -32,6 +34,13 @@ _loaded: set[str] = set()
 
 
 def _entry_points(group: str) -> list[EntryPoint]:
+    """The entry points of ``group``, by name: scanned once per ``sys.path`` (a scan reads the metadata of
+    every installed distribution, and the registry asks on every lookup)."""
+    return _scan(group, tuple(sys.path))
+
+
+@functools.lru_cache(maxsize=16)
+def _scan(group: str, path: tuple[str, ...]) -> list[EntryPoint]:
     return sorted(entry_points(group=group), key=lambda ep: ep.name)
 
 

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from nerfart_plugin.errors import NerfArtError
+from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_renderer,
                                       build_stylization_system, load_renderer_state, stylize_settings)
 from nerfart_plugin.fit import FitResult, fit_stage, save_final
@@ -145,7 +146,7 @@ class ReconstructStage(TrainingStage):
                         "scene_setup": self.scene.setup.to_dict(), "notes": self.scene.notes,
                         "occupied_fraction": system.occupied_fraction})
         if self.scene.cfg.export.enabled:
-            export_mesh(self.scene, system.field, self.folder.path / "mesh" / "source")
+            export_source_mesh(self.scene, system.field, self.folder.path / "mesh" / "source")
         log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics["psnr"], self.folder.path)
         return metrics
 
@@ -294,7 +295,8 @@ class StylizeStage(TrainingStage):
         from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 
         stamp, mesh_dir = self.style.stamp, self.folder.path / "mesh"
-        src = export_mesh(self.scene, system.source.field, mesh_dir / "source")
+        src = export_source_mesh(self.scene, system.source.field, mesh_dir / "source",
+                                 shared=Path(self.source).parent / "mesh" / "source")
         sty = export_mesh(self.scene, system.field, mesh_dir / f"stylized{stamp}")
         if src is None or sty is None:
             return {}
@@ -316,49 +318,6 @@ def _unstyled_warning(style: Style) -> Optional[str]:
 
 
 # ---------------------------------------------------------------------- export
-def export_mesh(scene: SceneContext, field: Any, stem: Path, texture: bool = True):
-    """The mesh of ``field`` (marching cubes, ``export.*``) written as ``stem.<fmt>`` for each format in
-    ``export.frame`` (the file says which), plus ``stem_textured.obj/.mtl/.png/.glb`` when ``export.texture``;
-    returns the mesh in the field's frame (for comparisons), None (with a warning) when the field has no
-    surface at the level."""
-    from nerfart_plugin.export import MeshExtractor
-
-    ec = scene.cfg.export
-    ex = MeshExtractor(resolution=ec.resolution, bound=float(field.bound), chunk=ec.chunk, level=ec.level,
-                       remove_floaters=ec.remove_floaters)
-    try:
-        mesh = ex.extract(field)
-    except NerfArtError as exc:
-        log.warning("no mesh for %s: %s", stem, exc)
-        return None
-    for fmt in ec.formats:
-        write_in_frame(scene, mesh, stem.with_suffix(f".{fmt}"))
-    if texture and ec.texture:
-        from nerfart_plugin.export.texture import bake_texture, export_textured
-
-        try:
-            textured = bake_texture(mesh, field, size=ec.texture_size, chunk=ec.chunk)
-        except NerfArtError as exc:
-            log.warning("no textured mesh for %s: %s", stem, exc)
-        else:
-            export_textured(in_frame(scene, textured), stem.with_name(f"{stem.name}_textured"))
-    return mesh
-
-
-def in_frame(scene: SceneContext, mesh: Any) -> Any:
-    """``mesh`` (field frame: normalized, or NDC for forward-facing captures) in ``export.frame``."""
-    from nerfart_plugin.export.frames import mesh_in_frame
-
-    return mesh_in_frame(mesh, scene.cfg.export.frame, scene.cameras)
-
-
-def write_in_frame(scene: SceneContext, mesh: Any, path: Path) -> Path:
-    """Write a field-frame mesh in ``export.frame``, saying so in the file (see :mod:`export.frames`)."""
-    from nerfart_plugin.export.frames import write_mesh_in_frame
-
-    return write_mesh_in_frame(mesh, path, scene.cfg.export.frame, scene.cameras)
-
-
 def write_cameras(scene: SceneContext, folder: Path) -> None:
     """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer and
     ``stage=render`` (:meth:`~nerfart_plugin.data.camera_path.CaptureCameras.from_json`)."""

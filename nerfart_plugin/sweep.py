@@ -216,13 +216,21 @@ def markdown_table(rows: list[dict[str, Any]], title: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+#: the failed jobs of the last multirun of this process (:class:`MultirunSummary`): the CLI exits 1 when any
+failed_jobs: list[int] = []
+
+
 class MultirunSummary(Callback):
-    """Writes ``summary.md`` and ``summary.json`` in the sweep folder when a multirun ends.
+    """Writes ``summary.md`` and ``summary.json`` in the sweep folder when a multirun ends, and records the
+    failed jobs in :data:`failed_jobs`.
 
     ``summary.json``: ``{"sweep_dir", "objective": {"metric", "direction"}, "best", "jobs": [rows]}``.
     With the Optuna sweeper, its ``optimization_results.yaml`` (best params/value) is
     included as ``optuna``.
     """
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        failed_jobs.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
@@ -230,6 +238,7 @@ class MultirunSummary(Callback):
             return
         metric = OmegaConf.select(config, "objective", default="auto")
         rows = collect(sweep_dir, metric)
+        failed_jobs[:] = [r["job"] for r in rows if r["status"] == "error"]
         ok = [r for r in rows if r.get("objective") is not None]
         best = max(ok, key=lambda r: r["objective"]) if ok else None
         summary: dict[str, Any] = {

@@ -122,6 +122,9 @@ def render_meshes(
         raise ConfigError(f"render_meshes takes 1 or 2 meshes, got {len(meshes)}.")
     if scalars == "displacement" and len(meshes) != 2:
         raise ConfigError("--scalars displacement needs two meshes: SOURCE STYLIZED.")
+    window_size = checked_window_size(window_size) if window_size else (800 * len(meshes), 800)
+    if n_samples < 1:
+        raise ConfigError(f"--samples {n_samples}: give a positive number of surface samples (default 50000).")
     tms = [m if isinstance(m, trimesh.Trimesh) else load_mesh(m) for m in meshes]
     view = capture_view(cameras, meshes)
     if labels is None:
@@ -138,7 +141,6 @@ def render_meshes(
     import pyvista as pv
 
     n = len(tms)
-    window_size = tuple(window_size) if window_size else (800 * n, 800)
     pl = pv.Plotter(shape=(1, n), off_screen=off_screen, window_size=list(window_size), border=False)
     pl.set_background("white")
     for i, tm in enumerate(tms):
@@ -236,6 +238,19 @@ def capture_view(cameras: str | os.PathLike | dict | None,
     except (KeyError, IndexError, TypeError, ValueError) as exc:
         raise NerfArtError(f"cameras file is malformed ({exc}): it needs c2w, front, centre and up, as the "
                            "pipeline writes them (cameras.json in the run folder).") from exc
+
+
+#: the window / screenshot sides the viewer accepts (pixels)
+WINDOW_SIDES = (16, 16384)
+
+
+def checked_window_size(size: Sequence[int]) -> tuple[int, int]:
+    """``(W, H)`` when both sides are whole pixels in :data:`WINDOW_SIDES`, else a ConfigError."""
+    lo, hi = WINDOW_SIDES
+    if len(size) != 2 or not all(isinstance(v, int) and lo <= v <= hi for v in size):
+        raise ConfigError(f"--window-size {' '.join(map(str, size))}: give the width and height in pixels, "
+                          f"each from {lo} to {hi} (e.g. --window-size 1600 800).")
+    return int(size[0]), int(size[1])
 
 
 def main(argv: Sequence[str] | None = None) -> int:

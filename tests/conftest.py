@@ -1,5 +1,9 @@
 """Shared fixtures: the real data in ../shared/data, a quiet, deterministic torch, a scratch working
-folder (nothing is written into the checkout), and ``no_network``."""
+folder (nothing is written into the checkout), ``shared_runs`` and ``no_network``.
+
+Under pytest-xdist (``-n 2``, the default in pyproject.toml) each worker takes its share of the cores
+for torch (and for the CLI subprocesses it starts), so two workers do not fight over two cores.
+"""
 
 from __future__ import annotations
 
@@ -25,6 +29,25 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def repo_root() -> Path:
     return REPO
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    if workers > 1:
+        threads = max(1, (os.cpu_count() or 1) // workers)
+        torch.set_num_threads(threads)
+        os.environ["OMP_NUM_THREADS"] = str(threads)  # the subprocesses this worker starts
+
+
+@pytest.fixture(scope="session")
+def shared_runs(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """One output root for the whole session, shared by the xdist workers: tests that train the same tiny run
+    find it in the run cache (the run folder's lock makes a second worker wait for the first, then reuse).
+    A test that changes a run copies its folder first."""
+    base = tmp_path_factory.getbasetemp()
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "shared-runs"
+    root.mkdir(exist_ok=True)
+    return root
 
 
 @pytest.fixture(autouse=True)

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import os
 import subprocess
 import sys
+import traceback
 from pathlib import Path
 
 from omegaconf import DictConfig
@@ -73,9 +77,58 @@ def cli_env(env: dict | None = None) -> dict:
     return {**os.environ, "PYTHONPATH": os.pathsep.join(dict.fromkeys(paths))}
 
 
-def run_cli(args: list[str], timeout: int = 600, cwd: Path | None = None,
-            env: dict | None = None) -> subprocess.CompletedProcess:
-    """``python -m nerfart_plugin ARGS`` in a subprocess, output captured. It runs in the current folder
+def run_cli_subprocess(args: list[str], timeout: int = 600, cwd: Path | None = None,
+                       env: dict | None = None) -> subprocess.CompletedProcess:
+    """``python -m nerfart_plugin ARGS`` in a subprocess, output captured: for what only a real process shows
+    (exit codes under signals, the installed script, another ``PYTHONPATH``). It runs in the current folder
     (the session's scratch folder, see conftest), so relative defaults (``outputs/``) stay out of the checkout."""
     return subprocess.run([sys.executable, "-m", "nerfart_plugin", *args], cwd=cwd or Path.cwd(), env=cli_env(env),
                           capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def run_cli(args: list[str], cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """``python -m nerfart_plugin ARGS`` run in this process (no interpreter and import start-up): the entry
+    point with ``sys.argv`` patched, stdout / stderr captured, the logging set-up that Hydra installs undone
+    afterwards, and ``SystemExit`` turned into the return code, as a subprocess would give it."""
+    from nerfart_plugin.__main__ import main
+
+    out, err = io.StringIO(), io.StringIO()
+    saved = _logging_state()
+    old_argv, old_cwd = sys.argv, Path.cwd()
+    code = 0
+    try:
+        _clear_logging()  # errors before Hydra configures logging go to Python's last-resort handler (stderr)
+        sys.argv = ["nerfart_plugin", *args]
+        os.chdir(cwd or old_cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main()
+            except SystemExit as exc:
+                code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+            except BaseException:  # what the interpreter would print on its way out
+                traceback.print_exc()
+                code = 1
+    finally:
+        sys.argv = old_argv
+        os.chdir(old_cwd)
+        _restore_logging(saved)
+    return subprocess.CompletedProcess(["nerfart_plugin", *args], code, out.getvalue(), err.getvalue())
+
+
+def _logging_state() -> dict:
+    loggers = [logging.root, logging.getLogger("nerfart_plugin")]
+    return {lg: (list(lg.handlers), lg.level, lg.propagate, lg.disabled) for lg in loggers}
+
+
+def _clear_logging() -> None:
+    for lg in (logging.root, logging.getLogger("nerfart_plugin")):
+        lg.handlers.clear()
+
+
+def _restore_logging(saved: dict) -> None:
+    for lg, (handlers, level, propagate, disabled) in saved.items():
+        for h in lg.handlers:
+            if h not in handlers:
+                h.close()  # the run's log file
+        lg.handlers[:] = handlers
+        lg.level, lg.propagate, lg.disabled = level, propagate, disabled

@@ -17,14 +17,14 @@ from hypothesis import strategies as st
 from nerfart_plugin.__main__ import normalize_overrides
 from nerfart_plugin.config_paths import config_dir, group_options
 
-from pipeline_helpers import composed, run_cli
+from pipeline_helpers import composed, run_cli, run_cli_subprocess
 
 REPO = Path(__file__).resolve().parents[1]
 GROUPS = ("backbone", "data", "encoding", "experiment", "guidance", "preset")
 
 
-def _cli(*args: str, timeout: int = 300) -> subprocess.CompletedProcess:
-    return run_cli(list(args), timeout=timeout)
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return run_cli(list(args))
 
 
 def _job_cfg(*args: str) -> dict:
@@ -65,7 +65,6 @@ def test_plus_is_folded_only_where_hydra_would_refuse_it():
     ]
 
 
-@pytest.mark.slow
 def test_plus_folding_follows_the_selected_group_options():
     # data.factor has a default in data=llff only; data.fps in data=selfie only
     assert normalize_overrides(["data=llff", "+data.factor=4", "+data.fps=3"]) == [
@@ -126,7 +125,6 @@ def _composed_value(arg: str, key: str):
     return OmegaConf.to_container(composed(arg), resolve=True)[key]
 
 
-@pytest.mark.slow
 @settings(max_examples=300, deadline=None)
 @given(text=st.text(max_size=40))
 def test_any_text_survives_hydra_quoting(text):
@@ -140,7 +138,6 @@ def test_any_text_survives_hydra_quoting(text):
     assert OmegaConf.to_container(OmegaConf.create({"prompt": value}), resolve=True)["prompt"] == text
 
 
-@pytest.mark.slow
 def test_hydra_syntax_in_prompt_values_keeps_its_meaning():
     assert normalize_overrides(["prompt='a,b'"]) == ["prompt='a,b'"]  # quoted by the user: one prompt
     assert normalize_overrides(["-m", "prompt=choice(Joker,Pixar)"]) == ["-m", "prompt=choice(Joker,Pixar)"]
@@ -164,20 +161,30 @@ def test_repeated_prompts_are_one_sweep_each_taken_literally():
         normalize_overrides(["+prompt=Joker", "+prompt=Pixar"])
 
 
-@pytest.mark.slow
 def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
-    """A real 2-job sweep: each job gets its prompt intact (they then stop at validation: no reconstruction)."""
+    """A real 2-job sweep: each job gets its prompt intact (they then stop at validation: no reconstruction).
+    Both jobs fail, so the sweep exits 1 after writing its summary, naming the failed jobs."""
     out = tmp_path / "sweep"
     proc = _cli("-m", "stage=stylize", "guidance=toy", f"output_root={out}", f"source_checkpoint={tmp_path}/none.ckpt",
-                "+prompt=Joker", "+prompt=Van Gogh's Starry Night, 1889 (Café)", timeout=300)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+                "+prompt=Joker", "+prompt=Van Gogh's Starry Night, 1889 (Café)")
+    assert proc.returncode == 1, proc.stderr[-3000:]
+    assert "2 sweep job(s) failed: 0, 1" in proc.stdout + proc.stderr
     jobs = sorted(p for p in out.glob("multirun/*/*") if p.is_dir() and p.name.isdigit())
     prompts = [yaml.safe_load((j / ".hydra" / "config.yaml").read_text())["prompt"] for j in jobs]
     assert prompts == ["Joker", "Van Gogh's Starry Night, 1889 (Café)"]
     assert "source_checkpoint" in (jobs[1] / "result.json").read_text()  # the job ran and failed clearly
+    assert (jobs[0].parent / "summary.md").is_file()
 
 
-@pytest.mark.slow
+def test_runs_started_in_the_same_second_keep_their_own_hydra_folders(tmp_path):
+    """Each run's ``.hydra/overrides.yaml`` survives: the run folder's name goes down to microseconds."""
+    for batch in ("abc", "xyz"):  # both stop at validation, after Hydra wrote the folder
+        assert _cli(f"output_root={tmp_path}", "stage=reconstruct", f"reconstruct.batch_rays={batch}").returncode == 2
+    folders = sorted((tmp_path / "hydra").iterdir())
+    assert len(folders) == 2
+    assert ["batch_rays=abc" in (f / ".hydra" / "overrides.yaml").read_text() for f in folders] == [True, False]
+
+
 def test_cli_non_ascii_and_quote_prompts():
     cfg = _job_cfg("+prompt=Van Gogh's Starry Night", "source_prompt=a photo (of a face), smiling: 日本")
     assert cfg["prompt"] == "Van Gogh's Starry Night"
@@ -190,13 +197,11 @@ def test_group_options_match_the_conf_folder():
 
 
 # ---------------------------------------------------------------------- --cfg job
-@pytest.mark.slow
 def test_cfg_job_plus_backbone_and_prompt():
     cfg = _job_cfg("+backbone=neus", "+prompt=Joker")
     assert cfg["backbone"]["name"] == "neus" and cfg["prompt"] == "Joker"
 
 
-@pytest.mark.slow
 def test_cfg_job_quoted_prompt_and_plain_backbone():
     cfg = _job_cfg(
         "+backbone=volsdf", "+prompt=Tolkien Elf"
@@ -206,7 +211,6 @@ def test_cfg_job_quoted_prompt_and_plain_backbone():
     assert cfg["backbone"]["name"] == "volsdf" and cfg["prompt"] is None
 
 
-@pytest.mark.slow
 def test_cfg_job_default_backbone_is_volsdf():
     cfg = _job_cfg()
     assert cfg["backbone"]["name"] == "volsdf" and cfg["stage"] == "all"
@@ -215,7 +219,6 @@ def test_cfg_job_default_backbone_is_volsdf():
     )
 
 
-@pytest.mark.slow
 def test_help_lists_groups():
     proc = _cli("--help")
     assert proc.returncode == 0
@@ -231,7 +234,6 @@ def test_help_lists_groups():
 
 
 # ---------------------------------------------------------------------- errors
-@pytest.mark.slow
 def test_unknown_backbone_group_option_lists_options():
     proc = _cli("backbone=foo")
     assert proc.returncode != 0
@@ -250,14 +252,12 @@ def _assert_clear_error(proc: subprocess.CompletedProcess, *needles: str) -> Non
         assert n in out, (n, out[-2000:])
 
 
-@pytest.mark.slow
 def test_unknown_backbone_name_is_a_config_error():
     _assert_clear_error(
         _cli("backbone.name=foo", "stage=reconstruct"), "'foo'", "nerf, neus, volsdf"
     )
 
 
-@pytest.mark.slow
 def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     proc = _cli("+render.new_key=1", "+render.num_sampels=8", "stage=reconstruct", f"output_root={tmp_path}")
     _assert_clear_error(proc, "render.new_key=1: unknown setting", "did you mean render.num_samples?",
@@ -266,7 +266,6 @@ def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     assert cfg["render"]["ndc_bound"] == 2.0 and cfg["backbone"]["name"] == "neus"
 
 
-@pytest.mark.slow
 def test_blank_prompt_and_bad_stage_are_clear_errors():
     _assert_clear_error(
         _cli("prompt=  ", "stage=stylize", "guidance=toy"), "prompt", "empty"
@@ -350,7 +349,8 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
         Path(pkg_file).is_relative_to(target)
         and Path(conf) == target / "nerfart_plugin" / "conf"
     )
-    proc = run_cli(["--cfg", "job", "+backbone=neus", "+prompt=Joker"], timeout=300, cwd=tmp_path, env=env)
+    proc = run_cli_subprocess(["--cfg", "job", "+backbone=neus", "+prompt=Joker"], timeout=300, cwd=tmp_path,
+                              env=env)
     assert proc.returncode == 0, proc.stderr[-3000:]
     cfg = yaml.safe_load(proc.stdout)
     assert cfg["backbone"]["name"] == "neus" and cfg["prompt"] == "Joker"

@@ -19,7 +19,7 @@ from nerfart_plugin.config_paths import config_dir, group_options
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.pipeline import Pipeline, validate_config
 
-from pipeline_helpers import composed, run_cli
+from pipeline_helpers import composed, run_cli_subprocess
 
 
 @functools.lru_cache(maxsize=None)
@@ -252,7 +252,7 @@ def test_pipeline_validates_before_touching_data(tmp_path):
 
 @pytest.mark.slow
 def test_cli_bad_value_is_one_config_error_line_without_traceback(tmp_path):
-    proc = run_cli(["preset=draft", "reconstruct.batch_rays=abc", f"output_root={tmp_path}",
+    proc = run_cli_subprocess(["preset=draft", "reconstruct.batch_rays=abc", f"output_root={tmp_path}",
                     f"hydra.run.dir={tmp_path}/hydra"], timeout=300)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2, out[-2000:]

@@ -153,3 +153,57 @@ def test_chamfer_to_true_surface_falls_with_resolution():
 def test_extract_to_writes_file(tmp_path):
     mesh = extractor(resolution=24).extract_to(SphereSDF(0.5), tmp_path / "sub" / "m.ply")
     assert (tmp_path / "sub" / "m.ply").exists() and len(mesh.faces) > 0
+
+
+def test_a_stylization_copies_its_sources_mesh_instead_of_extracting_it_again(tmp_path, monkeypatch):
+    """The source mesh is keyed by the field's tensors, the scene and the export settings: the same key copies
+    the reconstruction's files (no marching cubes, no texture bake); another field or setting extracts anew."""
+    from types import SimpleNamespace
+
+    import nerfart_plugin.export.mesh as mesh_module
+    from nerfart_plugin.export.run_meshes import export_source_mesh
+    from nerfart_plugin.schema import ExportConfig
+
+    def scene(**export) -> SimpleNamespace:
+        cfg = SimpleNamespace(export=ExportConfig(resolution=24, formats=["ply", "obj"], frame="normalized",
+                                                  texture_size=64, **export))
+        cams = SimpleNamespace(ndc=False, normalization=np.eye(4).tolist())
+        return SimpleNamespace(cfg=cfg, scene=SimpleNamespace(content_hash="head"), cameras=cams)
+
+    calls = []
+    real = mesh_module.MeshExtractor.extract
+    monkeypatch.setattr(mesh_module.MeshExtractor, "extract", lambda self, f: calls.append(1) or real(self, f))
+    field = SphereSDF(0.5)
+    recon, style = tmp_path / "recon" / "mesh" / "source", tmp_path / "style" / "mesh" / "source"
+    made = export_source_mesh(scene(), field, recon)
+    assert len(calls) == 1
+    got = export_source_mesh(scene(), field, style, shared=recon)
+    assert len(calls) == 1, "the same field and settings must not be extracted again"
+    names = ["source.ply", "source.obj", "source_textured.obj", "source_textured.mtl", "source_textured.png",
+             "source_textured.glb"]
+    for name in names:
+        assert (style.parent / name).read_bytes() == (recon.parent / name).read_bytes(), name
+    np.testing.assert_array_equal(got.vertices, made.vertices)
+    np.testing.assert_array_equal(got.faces, made.faces)
+    np.testing.assert_array_equal(got.visual.vertex_colors, made.visual.vertex_colors)
+    # another export setting, another field, or a damaged source folder: extracted anew
+    export_source_mesh(scene(level=0.05), field, tmp_path / "a" / "source", shared=recon)
+    changed = SphereSDF(0.5)
+    changed.register_buffer("trained", torch.ones(1))  # other tensors: another field
+    export_source_mesh(scene(), changed, tmp_path / "b" / "source", shared=recon)
+    (recon.parent / "source_textured.png").unlink()
+    export_source_mesh(scene(), field, tmp_path / "c" / "source", shared=recon)
+    assert len(calls) == 4
+
+
+def test_tensors_hash_reads_every_kind_of_tensor_and_changes_with_any_value():
+    from nerfart_plugin.export.run_meshes import tensors_hash
+
+    m = torch.nn.Linear(2, 2)
+    for name, t in (("scalar", torch.tensor(1.5)), ("mask", torch.zeros(4, dtype=torch.bool)), ("empty", torch.zeros(0)),
+                    ("halves", torch.ones(3, dtype=torch.float16))):
+        m.register_buffer(name, t)
+    before = tensors_hash(m)
+    assert tensors_hash(m) == before
+    m.scalar.fill_(2.5)
+    assert tensors_hash(m) != before

@@ -44,9 +44,9 @@ RECON = ["backbone=nerf", "reconstruct.steps=100"]
 
 
 @pytest.fixture(scope="module")
-def shared_root(tmp_path_factory) -> Path:
-    """One output root for the module: later tests reuse the cached reconstruction."""
-    return tmp_path_factory.mktemp("runs")
+def shared_root(shared_runs) -> Path:
+    """The session's output root: later tests (on either xdist worker) reuse the cached reconstruction."""
+    return shared_runs
 
 
 def test_reconstruction_loss_drops_and_cache_is_reused(shared_root: Path, small_head: Path) -> None:

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline_helpers import cli_args, run_cli
+from pipeline_helpers import cli_args, run_cli_subprocess
 
 PLUGIN_MODULE = '''
 """A third-party backbone: VolSDF with a different name (registered on import)."""
@@ -71,14 +71,14 @@ def test_installed_plugin_backbone_is_used_by_name(tmp_path: Path) -> None:
     out = tmp_path / "out"
     from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 
-    r = run_cli(cli_args(out, DEFAULT_SCENE, "stage=reconstruct", "backbone=tiny_sdf", "reconstruct.steps=3",
+    r = run_cli_subprocess(cli_args(out, DEFAULT_SCENE, "stage=reconstruct", "backbone=tiny_sdf", "reconstruct.steps=3",
                          "export.enabled=false"), env=env, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
     assert "plugin components loaded: tiny_sdf" in r.stdout + r.stderr
     runs = list((out / "reconstructions").iterdir())
     assert len(runs) == 1 and "-tiny_sdf-" in runs[0].name and (runs[0] / "final.ckpt").is_file()
     # without the distribution the name is unknown, and the error lists the valid ones
-    r2 = run_cli(cli_args(out, DEFAULT_SCENE, "stage=reconstruct", "backbone=tiny_sdf"), timeout=300)
+    r2 = run_cli_subprocess(cli_args(out, DEFAULT_SCENE, "stage=reconstruct", "backbone=tiny_sdf"), timeout=300)
     assert r2.returncode != 0 and "tiny_sdf" in r2.stdout + r2.stderr
 
 

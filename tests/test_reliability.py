@@ -24,7 +24,7 @@ from nerfart_plugin.errors import CheckpointError, ConfigError, NerfArtError, Ru
 from nerfart_plugin.pipeline import Pipeline
 from nerfart_plugin.utils.lock import lock_path
 
-from pipeline_helpers import REPO, cli_args, run_cli, tiny_cfg
+from pipeline_helpers import REPO, cli_args, run_cli, run_cli_subprocess, tiny_cfg
 
 RECON_SETTINGS = ["backbone=nerf", "reconstruct.steps=12", "export.enabled=false"]
 RECON = ["stage=reconstruct", *RECON_SETTINGS]
@@ -38,10 +38,9 @@ def _recon_dir(root: Path, *overrides: str) -> Path:
 
 
 @pytest.fixture(scope="module")
-def nerf_final(tmp_path_factory) -> Path:
-    """final.ckpt of a tiny NeRF reconstruction of the shipped head (12 steps)."""
-    root = tmp_path_factory.mktemp("nerf")
-    res = Pipeline(tiny_cfg(root, DEFAULT_SCENE, *RECON)).run()
+def nerf_final(shared_runs) -> Path:
+    """final.ckpt of a tiny NeRF reconstruction of the shipped head (12 steps), trained once per session."""
+    res = Pipeline(tiny_cfg(shared_runs, DEFAULT_SCENE, *RECON)).run()
     return Path(res["reconstruction"]["dir"]) / "final.ckpt"
 
 
@@ -174,7 +173,7 @@ def test_output_root_with_a_file_in_the_way_is_a_config_error(tmp_path):
     for root in (blocker, blocker / "runs"):
         with pytest.raises(ConfigError, match=rf"output_root={re.escape(str(root))}: {re.escape(str(blocker))} is a file"):
             Pipeline(tiny_cfg(root, DEFAULT_SCENE, *RECON))
-    proc = run_cli(["stage=reconstruct", f"output_root={blocker / 'runs'}"], timeout=300)
+    proc = run_cli_subprocess(["stage=reconstruct", f"output_root={blocker / 'runs'}"], timeout=300)
     out = proc.stdout + proc.stderr
     assert proc.returncode == 2 and "Traceback" not in out, out[-2000:]
     assert f"ConfigError: output_root={blocker / 'runs'}: {blocker} is a file" in out
@@ -233,7 +232,7 @@ def test_sigint_during_reconstruction_leaves_a_resumable_run(tmp_path):
     assert not list(stopped.glob("reconstructions/*/final.ckpt")) and "Traceback" not in proc.stderr
 
     for root in (stopped, straight):  # resume the interrupted run; run the other straight through
-        r = run_cli(cli_args(root, DEFAULT_SCENE, *over), timeout=600, env=ENV)
+        r = run_cli(cli_args(root, DEFAULT_SCENE, *over))
         assert r.returncode == 0, r.stderr[-2000:]
         assert ("resuming the reconstruction from" in r.stdout + r.stderr) == (root == stopped)
     a, b = _final_state(stopped, "reconstructions"), _final_state(straight, "reconstructions")
@@ -252,7 +251,7 @@ def test_sigint_during_stylization_leaves_a_resumable_run(tmp_path):
     assert re.search(r"interrupted at step \d+; run the same command again to resume from \S+stylizations\S+last.ckpt",
                      proc.stderr), proc.stderr[-3000:]
     assert not list(tmp_path.glob("stylizations/*/final.ckpt"))
-    r = run_cli(cli_args(tmp_path, DEFAULT_SCENE, *over), timeout=600, env=ENV)
+    r = run_cli(cli_args(tmp_path, DEFAULT_SCENE, *over))
     assert r.returncode == 0, r.stderr[-2000:]
     out = r.stdout + r.stderr
     assert "resuming the stylization from" in out and "reusing the cached reconstruction" in out

@@ -91,7 +91,7 @@ def test_two_meshes_side_by_side(tmp_path, mesh_files):
     assert ((right[:, 0] - right[:, 2]) > 60).sum() > 30 and ((right[:, 2] - right[:, 0]) > 60).sum() > 30
 
 
-def test_errors_name_the_file(tmp_path):
+def test_errors_name_the_file(tmp_path, capsys):
     with pytest.raises(DataError, match="missing.ply"):
         load_mesh(tmp_path / "missing.ply")
     bad = tmp_path / "bad.ply"
@@ -103,6 +103,15 @@ def test_errors_name_the_file(tmp_path):
     with pytest.raises(SystemExit) as info:
         main([str(tmp_path / "missing.ply"), "--screenshot", str(tmp_path / "o.png")])
     assert info.value.code == 2
+    for size in (["0", "-5"], ["100", "0"], ["20000", "100"]):  # refused before any mesh is read
+        with pytest.raises(ConfigError, match=r"--window-size .*from 16 to 16384"):
+            render_meshes([tmp_path / "missing.ply"], screenshot=tmp_path / "o.png", window_size=tuple(map(int, size)))
+        with pytest.raises(SystemExit) as info:
+            main([str(tmp_path / "missing.ply"), "--screenshot", str(tmp_path / "o.png"), "--window-size", *size])
+        assert info.value.code == 2 and f"--window-size {' '.join(size)}" in capsys.readouterr().err
+    with pytest.raises(ConfigError, match="--samples 0"):
+        render_meshes([tmp_path / "a.ply", tmp_path / "b.ply"], screenshot=tmp_path / "o.png", n_samples=0)
+    assert not (tmp_path / "o.png").exists()
 
 
 @pytest.mark.slow

@@ -129,8 +129,8 @@ def bake_texture(mesh: trimesh.Trimesh, field: Any, size: int = 1024, views: int
     image = np.zeros((size, size, 3), dtype=np.uint8)
     image[texels[:, 0], texels[:, 1]] = np.round(field_colors(field, pts, nrm, views, chunk) * 255).astype(np.uint8)
     image = pad_charts(image, index < 0, padding)
-    log.info("Baked a %dx%d texture: %d charts' texels %.0f%% of the atlas", size, size,
-             len(np.unique(index[index >= 0])), 100.0 * float((index >= 0).mean()))
+    log.info("Baked a %dx%d texture: %d of the atlas's %d triangles cover %.0f%% of its texels", size, size,
+             len(np.unique(index[index >= 0])), len(faces), 100.0 * float((index >= 0).mean()))
     visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(image))
     return trimesh.Trimesh(vertices=vertices, faces=faces, visual=visual, process=False)
 
