@@ -12,6 +12,8 @@
     run.write_render("renders/", path="orbit", channels=("rgb", "side"))   # mp4 (+ PNGs) + camera_path.json
     mesh = run.mesh(resolution=256)                       # trimesh, the capture's world frame
     scene = run.scene()                                   # the photos and cameras again (needs the data)
+    half = run.with_strength(0.5)                         # the style at half strength: a Run like any other
+    both = mix([run_a, run_b], [0.5, 0.5])                # two stylizations of one source, mixed
 
 ``python -m nerfart_plugin stage=render render.run=<folder>`` does the same as :meth:`Run.write_render`.
 Nothing here trains: a finished run is only read (its ``final.ckpt``, ``config.yaml``,
@@ -35,7 +37,7 @@ from nerfart_plugin.schema import RunConfig
 
 log = logging.getLogger("nerfart_plugin")
 
-__all__ = ["Run", "open_run", "RenderPath", "CaptureCameras"]
+__all__ = ["Run", "open_run", "mix", "RenderPath", "CaptureCameras"]
 
 
 @dataclass
@@ -49,6 +51,8 @@ class Run:
         renderer: the trained renderer (eval mode, on ``device``).
         cameras: the capture's cameras (normalized frame; from ``cameras.json``, else from the data).
         stamp: the file suffix of a run whose guidance was not a real CLIP (``_VERIFY-imagenet``), else "".
+        weights: the blend this Run renders (:mod:`nerfart_plugin.blend`): ``(1.0,)`` the run as trained,
+            ``(s,)`` the strength dial, one weight per run for a mix.
     """
 
     folder: Path
@@ -60,6 +64,7 @@ class Run:
     cameras: CaptureCameras
     device: torch.device
     stamp: str = ""
+    weights: tuple[float, ...] = (1.0,)
     _source: Optional["Run"] = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ what it is
@@ -84,6 +89,23 @@ class Run:
                                    "machine; copy that reconstruction folder back, or render without side.")
             self._source = open_run(Path(ckpt).parent, Path(ckpt).name, device=str(self.device))
         return self._source
+
+    @property
+    def tag(self) -> str:
+        """The part of output names that tells blends apart: "" as trained, ``-s0.50``, ``-mix0.50_0.50``."""
+        from nerfart_plugin.blend import blend_tag
+
+        return blend_tag(self.weights)
+
+    def with_strength(self, strength: float) -> "Run":
+        """This stylization at ``strength`` (0: the source, 1: as trained, up to 2: past it), without retraining
+        (:mod:`nerfart_plugin.blend`); a Run that renders, meshes and writes like any other."""
+        from nerfart_plugin.blend import check_strength
+
+        if self.kind != "stylization" or self.weights != (1.0,):
+            raise NerfArtError(f"{self.folder}: with_strength needs a stylization as trained, not a "
+                               f"{'blend' if self.kind == 'stylization' else 'reconstruction'}.")
+        return mix([self], [check_strength(strength)])
 
     def scene(self):
         """The capture again (:class:`~nerfart_plugin.data.scene.Scene`: photos, masks, cameras), loaded
@@ -145,7 +167,7 @@ class Run:
             raise ConfigError(f"render.channels=side shows source | stylized, but {self.folder} is a reconstruction: "
                               "render a stylization run, or drop side.")
         source = self.source.renderer if "side" in channels else None
-        label = "stylized" + (f" ({self.stamp.strip('_')})" if self.stamp else "")
+        label = "stylized" + (f" ({self.stamp.strip('_')})" if self.stamp else "") + self.tag.replace("-", " ")
         cams = self.cameras
         return render_cameras(self.renderer, rp, ndc=cams.ndc, near=float(cams.near.min()), far=float(cams.far.max()),
                               chunk=self.config.render.chunk, device=self.device, channels=channels, source=source,
@@ -165,10 +187,11 @@ class Run:
         rendered = self.render_path(rp, channels=channels)
         files: dict[str, Any] = {"camera_path": str(write_camera_path(rp, self.cameras, out / "camera_path.json", fps))}
         for channel, images in rendered.items():
-            files[channel] = str(write_video(images, out / f"{channel}{self.stamp}.mp4", fps=fps))
+            name = f"{channel}{self.tag}{self.stamp}"
+            files[channel] = str(write_video(images, out / f"{name}.mp4", fps=fps))
             if png:
                 for i, img in enumerate(images):
-                    save_image(img, out / f"{channel}{self.stamp}" / f"{i:05d}.png")
+                    save_image(img, out / name / f"{i:05d}.png")
         log.info("rendered %d frames of %s (%dx%d) -> %s", len(rp), rp.name, rp.width, rp.height, out)
         return {"dir": str(out), "frames": len(rp), "width": rp.width, "height": rp.height, "fps": fps, "files": files}
 
@@ -184,6 +207,33 @@ class Run:
         ex = MeshExtractor(resolution=int(resolution), bound=float(field.bound), chunk=ec.chunk,
                            level=ec.level if level is None else level, remove_floaters=ec.remove_floaters)
         return mesh_in_frame(ex.extract(field), frame, self.cameras)
+
+
+def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
+    """Stylizations of one source combined: ``θ_src + Σ w_i (θ_i − θ_src)`` (:mod:`nerfart_plugin.blend`;
+    each weight in ``blend.WEIGHT_RANGE``). Returns a Run like the first one (its folder, settings and
+    cameras) rendering the blend. Runs whose source checkpoints differ in content are refused."""
+    from dataclasses import replace
+
+    from nerfart_plugin.blend import blended_renderer, check_weights
+
+    weights = check_weights(weights, len(runs))
+    for r in runs:
+        if r.kind != "stylization" or r.weights != (1.0,):
+            raise ConfigError(f"mix: {r.folder} is not a stylization as trained; mix stylizations of one source.")
+    source = runs[0].source
+    for r in runs[1:]:
+        if _content(r.source.checkpoint) != _content(source.checkpoint):
+            raise ConfigError(f"mix: the runs stylize different sources: {source.checkpoint} and "
+                              f"{r.source.checkpoint} differ in content; mix stylizations of the same reconstruction.")
+    renderer = blended_renderer(runs[0].renderer, source.renderer, [r.renderer for r in runs], weights)
+    return replace(runs[0], renderer=renderer, weights=tuple(weights), _source=source)
+
+
+def _content(path: Path) -> str:
+    from nerfart_plugin.utils.io import hash_files
+
+    return hash_files([Path(path)])
 
 
 def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: str = "auto") -> Run:

@@ -374,6 +374,9 @@ class RunConfig(Section):
     lock_timeout: Optional[Float] = Setting(None, ge=0.0, le=1e7, description="seconds to wait for a run folder "
                                             "that another process holds; 0: stop at once; null: wait until it ends",
                                             changes_results=False)
+    strength: Float = Setting(1.0, ge=0.0, le=2.0, description="stage=render / stage=export of a stylization: "
+                              "the style's strength without retraining (0: the source, 1: as trained, 2: twice its "
+                              "change; outputs named -s<strength>)", changes_results=False)
     render: RenderConfig = Field(default_factory=RenderConfig)
     reconstruct: ReconstructConfig = Field(default_factory=ReconstructConfig)
     stylize: StylizeConfig = Field(default_factory=StylizeConfig)

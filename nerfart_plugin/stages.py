@@ -336,10 +336,19 @@ class ExportStage:
         if not self.checkpoint.exists():
             raise NerfArtError(f"stage=export: no checkpoint at {self.checkpoint}. Run stage=reconstruct first or "
                                "pass source_checkpoint=/path/to/final.ckpt.")
-        renderer = build_renderer(self.scene.cfg, self.scene.setup)
-        renderer.load_state_dict(load_renderer_state(self.checkpoint, self.scene))
-        renderer.to(self.scene.device).eval()
-        stem = self.checkpoint.parent / "mesh" / f"export-{self.checkpoint.stem}-r{self.scene.cfg.export.resolution}"
+        strength = self.scene.cfg.strength
+        if strength != 1.0:  # a stylization at another strength (nerfart_plugin.blend)
+            from nerfart_plugin.api import open_run
+
+            renderer = open_run(self.checkpoint, device=str(self.scene.device)).with_strength(strength).renderer
+        else:
+            renderer = build_renderer(self.scene.cfg, self.scene.setup)
+            renderer.load_state_dict(load_renderer_state(self.checkpoint, self.scene))
+            renderer.to(self.scene.device).eval()
+        from nerfart_plugin.blend import blend_tag
+
+        stem = self.checkpoint.parent / "mesh" / (f"export-{self.checkpoint.stem}-r{self.scene.cfg.export.resolution}"
+                                                  f"{blend_tag([strength])}")
         mesh = export_mesh(self.scene, renderer.field, stem)
         return StageResult(self.checkpoint, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
 
@@ -356,9 +365,11 @@ class RenderStage:
 
         rc = self.cfg.render
         run = open_run(self.run_dir, device=self.cfg.device)
+        if self.cfg.strength != 1.0:
+            run = run.with_strength(self.cfg.strength)
         resolution = None if rc.resolution == "auto" else int(rc.resolution)
         path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
-        out = run.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}"
+        out = run.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}{run.tag}"
         summary = run.write_render(out, path, channels=rc.channels, fps=rc.fps, png=rc.png)
         return StageResult(run.checkpoint, summary)
 

@@ -139,3 +139,27 @@ def test_selfie_model_not_matching_images(shared_data):
     # girl/sparse/0 names views (img_0059...) absent from girl/images: refuse, do not guess
     with pytest.raises(DataError, match="missing from"):
         load_scene("selfie", shared_data / "girl")
+
+
+def test_colmap_lists_longer_than_their_files_are_refused_before_pycolmap_reads_them(tmp_path):
+    """A corrupt list length made pycolmap read past the end for 2^31 entries (a hang found by the fuzzer):
+    the model's binary files are walked first, and such a file is a DataError naming it."""
+    import struct
+
+    point = struct.pack("<Q3d3Bd", 1, 0.0, 0.0, 0.0, 0, 0, 0, 0.0)
+    image = struct.pack("<I4d3dI", 1, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1) + b"a.png\0"
+    cases = {"points3D.bin": (struct.pack("<Q", 0), struct.pack("<QQ", 1, 1) + point[8:] + struct.pack("<Q", 2**31)),
+             "images.bin": (struct.pack("<Q", 1) + image + struct.pack("<Q", 2**40), struct.pack("<Q", 0))}
+    for bad, (images, points) in cases.items():
+        folder = tmp_path / bad
+        folder.mkdir()
+        (folder / "cameras.bin").write_bytes(struct.pack("<Q", 0))
+        (folder / "images.bin").write_bytes(images)
+        (folder / "points3D.bin").write_bytes(points)
+        with pytest.raises(DataError, match=rf"{bad}: record 0 declares \d+ entries, more than the file holds"):
+            read_colmap_model(folder)
+    (tmp_path / "short").mkdir()
+    for name in ("cameras.bin", "images.bin", "points3D.bin"):
+        (tmp_path / "short" / name).write_bytes(struct.pack("<Q", 5))
+    with pytest.raises(DataError, match="declares 5 records but ends inside record 0"):
+        read_colmap_model(tmp_path / "short")

@@ -46,7 +46,7 @@ def export_mesh(scene: Any, field: Any, stem: Path, texture: bool = True):
         log.warning("no mesh for %s: %s", stem, exc)
         return None
     for fmt in ec.formats:
-        write_in_frame(scene, mesh, stem.with_suffix(f".{fmt}"))
+        write_in_frame(scene, mesh, stem.with_name(f"{stem.name}.{fmt}"))
     if texture and ec.texture:
         from nerfart_plugin.export.texture import bake_texture, export_textured
 
@@ -92,7 +92,7 @@ def mesh_key(scene: Any, field: Any) -> str:
 
 def _outputs(stem: Path, formats: list[str]) -> list[Path]:
     """The files :func:`export_mesh` may write for ``stem`` (those that exist)."""
-    names = [stem.with_suffix(f".{f}") for f in formats]
+    names = [stem.with_name(f"{stem.name}.{f}") for f in formats]
     names += [stem.with_name(f"{stem.name}_textured{s}") for s in (".obj", ".mtl", ".png", ".glb")]
     return [p for p in names if p.is_file()]
 

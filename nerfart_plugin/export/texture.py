@@ -167,13 +167,13 @@ def export_textured(mesh: trimesh.Trimesh, stem: Path, formats: tuple[str, ...] 
             with atomic_path(target) as tmp:
                 Path(tmp).write_bytes(data)
             written.append(target)
-        with atomic_path(stem.with_suffix(".obj")) as tmp:
+        with atomic_path(stem.with_name(f"{stem.name}.obj")) as tmp:
             Path(tmp).write_text(obj_text)
-        written.append(stem.with_suffix(".obj"))
+        written.append(stem.with_name(f"{stem.name}.obj"))
     if "glb" in formats:
-        with atomic_path(stem.with_suffix(".glb")) as tmp:
+        with atomic_path(stem.with_name(f"{stem.name}.glb")) as tmp:
             mesh.export(tmp, file_type="glb")
-        written.append(stem.with_suffix(".glb"))
+        written.append(stem.with_name(f"{stem.name}.glb"))
     log.info("Wrote textured mesh %s (%s)", stem, ", ".join(p.name for p in written))
     return written
 

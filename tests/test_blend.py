@@ -1,0 +1,133 @@
+"""The strength dial and style mixing (nerfart_plugin.blend, api.Run.with_strength, api.mix, strength=)."""
+
+from __future__ import annotations
+
+import copy
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nerfart_plugin.blend import blend_states, blend_tag, check_strength, check_weights
+from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+from nerfart_plugin.errors import ConfigError, NerfArtError
+
+from pipeline_helpers import run_cli, tiny_cfg
+
+
+def test_blend_states_is_the_weighted_delta_and_copies_what_it_must_not_blend():
+    src = {"w": torch.tensor([1.0, 2.0]), "occupancy.score": torch.tensor([0.5]), "steps": torch.tensor(3),
+           "occupancy.occupied": torch.tensor([True])}
+    a = {"w": torch.tensor([3.0, 2.0]), "occupancy.score": torch.tensor([0.9]), "steps": torch.tensor(7),
+         "occupancy.occupied": torch.tensor([False])}
+    b = {**a, "w": torch.tensor([1.0, 6.0])}
+    out = blend_states(src, [a, b], [0.5, 0.25])
+    torch.testing.assert_close(out["w"], torch.tensor([2.0, 3.0]))
+    assert out["occupancy.score"] == 0.5 and out["steps"] == 3 and bool(out["occupancy.occupied"])  # not blended
+    torch.testing.assert_close(blend_states(src, [a], [1.5])["w"], torch.tensor([4.0, 2.0]))  # past the run
+    with pytest.raises(ConfigError, match="run 0 has no tensor 'w' of shape"):
+        blend_states(src, [{**a, "w": torch.zeros(3)}], [1.0])
+
+
+def test_strength_and_weights_outside_their_range_are_config_errors():
+    assert [check_strength(s) for s in (0, 1, 2, "0.5")] == [0.0, 1.0, 2.0, 0.5]
+    for bad in (-0.1, 2.01, float("nan"), "abc", None):
+        with pytest.raises(ConfigError, match=r"strength=.*pick a value in \[0, 2\]"):
+            check_strength(bad)
+    assert check_weights([0.5, -1, 2], 3) == [0.5, -1.0, 2.0]
+    with pytest.raises(ConfigError, match="2 run\\(s\\) and 1 weight"):
+        check_weights([0.5], 2)
+    with pytest.raises(ConfigError, match=r"mix weight 1 = 2.5: each weight must lie in \[-1, 2\]"):
+        check_weights([0.5, 2.5], 2)
+    assert [blend_tag(w) for w in ([1.0], [0.5], [0.5, 0.25])] == ["", "-s0.50", "-mix0.50_0.25"]
+
+
+# ---------------------------------------------------------------------- on trained runs
+STYLE = ["guidance=toy", "reconstruct.steps=20", "stylize.steps=4", "stylize.lr=0.01", "export.enabled=false"]
+
+
+@pytest.fixture(scope="module")
+def styles(shared_runs) -> dict[str, Path]:
+    """Two toy stylizations of one tiny reconstruction of the shipped head, and one of another (seed 1)."""
+    from nerfart_plugin.pipeline import run
+
+    out = {}
+    for name, extra in (("red", ["prompt=red"]), ("blue", ["prompt=blue"]), ("other", ["prompt=red", "seed=1"])):
+        out[name] = Path(run(tiny_cfg(shared_runs, DEFAULT_SCENE, *STYLE, *extra))["stylization"]["dir"])
+    return out
+
+
+def _state_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k].to(sa[k].device)) for k in sa)
+
+
+@pytest.mark.slow
+def test_strength_zero_is_the_source_one_is_the_run_and_beyond_gets_its_own_grid(styles):
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.blend import refresh_occupancy
+
+    run = open_run(styles["red"], device="cpu")
+    zero, one, past = run.with_strength(0.0), run.with_strength(1.0), run.with_strength(1.5)
+    assert _state_equal(zero.renderer, run.source.renderer) and _state_equal(one.renderer, run.renderer)
+    assert np.array_equal(one.render(3)["rgb"], run.render(3)["rgb"])  # s = 1: the run exactly
+    assert not _state_equal(past.renderer, run.renderer)
+    # s > 1: the grid is estimated for the blended field, not copied from either side
+    grid = past.renderer.occupancy
+    assert not torch.equal(grid.score, run.renderer.occupancy.score)
+    expected = copy.deepcopy(grid)
+
+    class Holder(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.field, self.occupancy = past.renderer.field, expected
+
+    refresh_occupancy(Holder())
+    assert torch.equal(expected.occupied, grid.occupied)
+    img = past.render(3)["rgb"]
+    assert np.isfinite(img).all() and not np.array_equal(img, run.render(3)["rgb"])
+    assert past.tag == "-s1.50" and zero.tag == "-s0.00" and one.tag == ""
+    with pytest.raises(NerfArtError, match="not a blend"):
+        past.with_strength(0.5)
+    with pytest.raises(NerfArtError, match="not a reconstruction"):
+        run.source.with_strength(0.5)
+    with pytest.raises(ConfigError, match="strength=2.5"):
+        run.with_strength(2.5)
+
+
+@pytest.mark.slow
+def test_mixing_stylizations_of_one_source_and_refusing_others(styles):
+    from nerfart_plugin.api import mix, open_run
+
+    red, blue, other = (open_run(styles[k], device="cpu") for k in ("red", "blue", "other"))
+    assert _state_equal(mix([red, blue], [1.0, 0.0]).renderer, red.renderer)  # one run at 1: that run
+    assert _state_equal(mix([red, blue], [0.0, 0.0]).renderer, red.source.renderer)  # none: the source
+    half = mix([red, blue], [0.5, 0.5])
+    sr, sb, sh, s0 = (r.state_dict() for r in (red.renderer, blue.renderer, half.renderer, red.source.renderer))
+    name = next(k for k in sh if sh[k].is_floating_point() and not k.startswith("occupancy.")
+                and not torch.equal(sr[k], s0[k]))
+    torch.testing.assert_close(sh[name], s0[name] + 0.5 * (sr[name] - s0[name]) + 0.5 * (sb[name] - s0[name]))
+    assert half.tag == "-mix0.50_0.50" and math.isfinite(float(half.render(2)["rgb"].mean()))
+    with pytest.raises(ConfigError, match=r"different sources: .*final.ckpt and .*final.ckpt differ in content"):
+        mix([red, other], [0.5, 0.5])
+
+
+@pytest.mark.slow
+def test_render_and_export_stages_take_the_strength_and_keep_each_strength_apart(styles, tmp_path):
+    run = styles["red"]
+    common = [f"output_root={tmp_path}", "stage=render", f"render.run={run}", "render.frames=2", "render.resolution=24",
+              f"hydra.run.dir={tmp_path}/hydra"]
+    for strength in ("0.5", "1.0"):
+        proc = run_cli([*common, f"strength={strength}"])
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (run / "render" / "orbit-2f-24x24-s0.50" / "rgb-s0.50_UNSTYLED-toy.mp4").is_file()
+    assert (run / "render" / "orbit-2f-24x24" / "rgb_UNSTYLED-toy.mp4").is_file()
+    proc = run_cli([*common, "strength=2.5"])
+    assert proc.returncode == 2 and "strength" in proc.stdout + proc.stderr and "Traceback" not in proc.stderr
+    proc = run_cli([f"output_root={tmp_path}", "stage=export", f"source_checkpoint={run / 'final.ckpt'}",
+                    "export.resolution=24", "export.texture=false", "strength=0.5", "guidance=toy",
+                    f"hydra.run.dir={tmp_path}/hydra"])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (run / "mesh" / "export-final-r24-s0.50.ply").is_file()
