@@ -61,7 +61,7 @@ def _model_name(cam: Any) -> str:
     return cam.model.name if hasattr(cam.model, "name") else str(cam.model)
 
 
-def _walk(data: bytes, name: str, head: str, per_item: int, fix: str, named: bool = False) -> None:
+def _walk(data: bytes, name: str, head: str, per_item: int, named: bool = False) -> None:
     """Walk the records of a COLMAP binary file (a uint64 record count, then the records): each record has
     fixed fields (``head``, a little-endian struct format), a NUL-terminated name when ``named``, a uint64
     list length and that many entries of ``per_item`` bytes. Raises DataError when a record claims more bytes
@@ -69,33 +69,36 @@ def _walk(data: bytes, name: str, head: str, per_item: int, fix: str, named: boo
     import struct
 
     if len(data) < 8:
-        raise DataError(f"{name} is {len(data)} bytes, too short for a COLMAP model; {fix}.")
+        raise DataError(f"{name} is {len(data)} bytes, too short for a COLMAP model")
     (n,) = struct.unpack_from("<Q", data, 0)
     pos, size = 8, struct.calcsize(head)
     for i in range(n):
         if pos + size > len(data):
-            raise DataError(f"{name} declares {n} records but ends inside record {i}; {fix}.")
+            raise DataError(f"{name} declares {n} records but ends inside record {i}")
         pos += size
         if named:
             end = data.find(b"\0", pos)
             if end < 0:
-                raise DataError(f"{name}: record {i} has no end to its name; {fix}.")
+                raise DataError(f"{name}: record {i} has no end to its name")
             pos = end + 1
         if pos + 8 > len(data):
-            raise DataError(f"{name}: record {i} ends before its list length; {fix}.")
+            raise DataError(f"{name}: record {i} ends before its list length")
         (k,) = struct.unpack_from("<Q", data, pos)
         pos += 8 + k * per_item
         if pos > len(data):
-            raise DataError(f"{name}: record {i} declares {k} entries, more than the file holds; {fix}.")
+            raise DataError(f"{name}: record {i} declares {k} entries, more than the file holds")
 
 
 def check_binary_lengths(path: Path, fix: str) -> None:
     """Refuse ``images.bin`` / ``points3D.bin`` whose records claim more data than the files hold (a corrupt
     list length makes pycolmap read past the end for up to 2^64 entries: a hang, not an error)."""
-    # images.bin: image_id, qvec[4], tvec[3], camera_id, name\0, num_points2D, (x, y, point3D_id) each
-    _walk((path / "images.bin").read_bytes(), str(path / "images.bin"), "<I4d3dI", 24, fix, named=True)
-    # points3D.bin: point3D_id, xyz[3], rgb[3], error, track_length, (image_id, point2D_idx) each
-    _walk((path / "points3D.bin").read_bytes(), str(path / "points3D.bin"), "<Q3d3Bd", 8, fix)
+    try:
+        # images.bin: image_id, qvec[4], tvec[3], camera_id, name\0, num_points2D, (x, y, point3D_id) each
+        _walk((path / "images.bin").read_bytes(), "images.bin", "<I4d3dI", 24, named=True)
+        # points3D.bin: point3D_id, xyz[3], rgb[3], error, track_length, (image_id, point2D_idx) each
+        _walk((path / "points3D.bin").read_bytes(), "points3D.bin", "<Q3d3Bd", 8)
+    except DataError as exc:
+        raise DataError(f"Cannot read COLMAP model {path} ({exc}); {fix}.") from None
 
 
 def read_colmap_model(path: Any) -> ColmapModel:
