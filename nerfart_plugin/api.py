@@ -52,7 +52,7 @@ class Run:
         cameras: the capture's cameras (normalized frame; from ``cameras.json``, else from the data).
         stamp: the file suffix of a run whose guidance was not a real CLIP (``_VERIFY-imagenet``), else "".
         weights: the blend this Run renders (:mod:`nerfart_plugin.blend`): ``(1.0,)`` the run as trained,
-            ``(s,)`` the strength dial, one weight per run for a mix.
+            ``(s,)`` the strength dial, one weight per run for a mix; mixed: the folders of a mix's runs.
     """
 
     folder: Path
@@ -65,6 +65,7 @@ class Run:
     device: torch.device
     stamp: str = ""
     weights: tuple[float, ...] = (1.0,)
+    mixed: tuple[str, ...] = ()
     _source: Optional["Run"] = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ what it is
@@ -92,10 +93,10 @@ class Run:
 
     @property
     def tag(self) -> str:
-        """The part of output names that tells blends apart: "" as trained, ``-s0.50``, ``-mix0.50_0.50``."""
+        """The part of output names that tells blends apart: "" as trained, ``-s0.50``, ``-mix0.50_0.50-<hash>``."""
         from nerfart_plugin.blend import blend_tag
 
-        return blend_tag(self.weights)
+        return blend_tag(self.weights, self.mixed)
 
     def with_strength(self, strength: float) -> "Run":
         """This stylization at ``strength`` (0: the source, 1: as trained, up to 2: past it), without retraining
@@ -227,7 +228,8 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
             raise ConfigError(f"mix: the runs stylize different sources: {source.checkpoint} and "
                               f"{r.source.checkpoint} differ in content; mix stylizations of the same reconstruction.")
     renderer = blended_renderer(runs[0].renderer, source.renderer, [r.renderer for r in runs], weights)
-    return replace(runs[0], renderer=renderer, weights=tuple(weights), _source=source)
+    return replace(runs[0], renderer=renderer, weights=tuple(weights), mixed=tuple(str(r.folder) for r in runs),
+                   _source=source)
 
 
 def _content(path: Path) -> str:

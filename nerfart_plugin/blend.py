@@ -115,8 +115,11 @@ def blended_renderer(template: Any, source: Any, styles: Sequence[Any], weights:
     return out.eval()
 
 
-def blend_tag(weights: Sequence[float]) -> str:
-    """The file-name part of a blend: "" for one run at 1, ``-s0.50`` for one run at 0.5, ``-mix0.50_0.50``."""
+def blend_tag(weights: Sequence[float], runs: Sequence[str] = ()) -> str:
+    """The file-name part of a blend: "" for one run at 1, ``-s0.50`` for one run at 0.5, and for a mix its
+    weights and a short hash of its ``runs`` (their folders, in order): ``-mix0.50_0.50-1a2b3c``."""
     if len(weights) == 1:
         return "" if weights[0] == 1.0 else f"-s{weights[0]:.2f}"
-    return "-mix" + "_".join(f"{w:.2f}" for w in weights)
+    from nerfart_plugin.runs import config_hash
+
+    return "-mix" + "_".join(f"{w:.2f}" for w in weights) + f"-{config_hash(list(runs), n=6)}"

@@ -136,6 +136,8 @@ class PrimaryConfig:
 
     keys: set[str] = field(default_factory=set)
     groups: set[str] = field(default_factory=set)
+    #: False when composition failed and ``keys`` holds only the top-level keys
+    complete: bool = True
 
 
 def _dotted_keys(node: Any, prefix: str = "") -> Iterable[str]:
@@ -193,7 +195,7 @@ def primary_config(argv: list[str]) -> PrimaryConfig:
                 found.keys |= set(_dotted_keys(plain))
     except (HydraException, ValueError, KeyError) as exc:
         log.debug("could not compose the primary config for +key folding (%s); using its top-level keys", exc)
-        found = PrimaryConfig(keys=primary_keys(), groups=groups)
+        found = PrimaryConfig(keys=primary_keys(), groups=groups, complete=False)
     return found
 
 
@@ -205,14 +207,28 @@ def fold_plus(arg: str, primary: PrimaryConfig) -> str:
     return arg[1:] if key in primary.keys or key in primary.groups else arg
 
 
+def add_plus(arg: str, primary: PrimaryConfig) -> str:
+    """``key=value`` -> ``+key=value`` for a key the composed config does not have (a typo such as
+    ``render.num_sampels=3``): Hydra then adds it and the schema refuses it naming the closest valid keys,
+    where Hydra alone would advise ``+render.num_sampels=3``, keeping the typo. Groups, Hydra's own keys
+    and package or deletion syntax are left to Hydra."""
+    if not primary.complete or arg.startswith(("+", "-", "~")) or "=" not in arg:
+        return arg
+    key = arg.split("=", 1)[0]
+    if key in primary.keys or key in primary.groups or "/" in key or "@" in key or key.split(".")[0] == "hydra":
+        return arg
+    return "+" + arg
+
+
 def normalize_overrides(argv: list[str], primary: Optional[PrimaryConfig] = None) -> list[str]:
-    """The command line as Hydra should see it: prompts quoted, ``+`` folded where Hydra would refuse it.
+    """The command line as Hydra should see it: prompts quoted, ``+`` folded where Hydra would refuse it and
+    added where Hydra would refuse a plain override of an unknown key (:func:`add_plus`).
 
     ``primary``: what the composed config already has (default: composed from ``argv``'s group selections).
     """
     multirun = any(a in MULTIRUN_FLAGS for a in argv)
     argv = quote_prompts(list(argv), multirun)
-    if not any(a.startswith("+") and not a.startswith("++") and "=" in a for a in argv):
+    if not any("=" in a and not a.startswith(("++", "-", "~")) for a in argv):
         return argv
     primary = primary if primary is not None else primary_config(argv)
-    return [fold_plus(a, primary) for a in argv]
+    return [add_plus(fold_plus(a, primary), primary) for a in argv]

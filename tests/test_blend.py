@@ -41,7 +41,9 @@ def test_strength_and_weights_outside_their_range_are_config_errors():
         check_weights([0.5], 2)
     with pytest.raises(ConfigError, match=r"mix weight 1 = 2.5: each weight must lie in \[-1, 2\]"):
         check_weights([0.5, 2.5], 2)
-    assert [blend_tag(w) for w in ([1.0], [0.5], [0.5, 0.25])] == ["", "-s0.50", "-mix0.50_0.25"]
+    assert [blend_tag(w) for w in ([1.0], [0.5])] == ["", "-s0.50"]
+    a_b, a_c = blend_tag([0.5, 0.25], ["runs/a", "runs/b"]), blend_tag([0.5, 0.25], ["runs/a", "runs/c"])
+    assert a_b.startswith("-mix0.50_0.25-") and a_b != a_c  # two mixes at the same weights never share a name
 
 
 # ---------------------------------------------------------------------- on trained runs
@@ -109,7 +111,7 @@ def test_mixing_stylizations_of_one_source_and_refusing_others(styles):
     name = next(k for k in sh if sh[k].is_floating_point() and not k.startswith("occupancy.")
                 and not torch.equal(sr[k], s0[k]))
     torch.testing.assert_close(sh[name], s0[name] + 0.5 * (sr[name] - s0[name]) + 0.5 * (sb[name] - s0[name]))
-    assert half.tag == "-mix0.50_0.50" and math.isfinite(float(half.render(2)["rgb"].mean()))
+    assert half.tag.startswith("-mix0.50_0.50-") and math.isfinite(float(half.render(2)["rgb"].mean()))
     with pytest.raises(ConfigError, match=r"different sources: .*final.ckpt and .*final.ckpt differ in content"):
         mix([red, other], [0.5, 0.5])
 

@@ -266,6 +266,17 @@ def test_plus_new_key_reaches_the_schema_and_is_refused_clearly(tmp_path):
     assert cfg["render"]["ndc_bound"] == 2.0 and cfg["backbone"]["name"] == "neus"
 
 
+def test_a_mistyped_key_without_plus_gets_the_closest_valid_keys(tmp_path):
+    """Hydra alone answers ``render.num_sampels=3`` with "To append to your config use +render.num_sampels=3"
+    (exit 1), advice that keeps the typo; the CLI gives it the schema's ConfigError instead."""
+    assert normalize_overrides(["render.num_sampels=3", "render.num_samples=3", "hydra.run.dir=x"]) == [
+        "+render.num_sampels=3", "render.num_samples=3", "hydra.run.dir=x"]
+    assert normalize_overrides(["data=llff", "data.factor=4"]) == ["data=llff", "data.factor=4"]  # llff has it
+    for typo, suggestion in (("render.num_sampels=3", "render.num_samples"), ("data.resoluton=128", "data.resolution"),
+                             ("backbone.hiden_dim=64", "backbone.hidden_dim")):
+        _assert_clear_error(_cli(typo, "stage=reconstruct", f"output_root={tmp_path}"), f"did you mean {suggestion}?")
+
+
 def test_blank_prompt_and_bad_stage_are_clear_errors():
     _assert_clear_error(
         _cli("prompt=  ", "stage=stylize", "guidance=toy"), "prompt", "empty"
