@@ -115,18 +115,21 @@ def remember_mesh(stem: Path, mesh: Any, key: str, formats: list[str]) -> None:
     atomic_write_json(meta, {"key": key, "files": [p.name for p in _outputs(stem, formats)]})
 
 
-def recall_mesh(stem: Path, key: str) -> Optional[Any]:
-    """The field-frame mesh stored for ``stem`` under ``key``, when every file it lists is still there."""
+def recall_mesh(stem: Path, key: str) -> Optional[tuple[Any, list[str]]]:
+    """The field-frame mesh stored for ``stem`` under ``key`` and the names of its files, when every one of
+    them is still there; else None."""
     import trimesh
 
     npz, meta = _cache(stem)
     try:
         stored = json.loads(meta.read_text())
-        if stored.get("key") != key or not all((stem.parent / n).is_file() for n in stored["files"]):
+        files = list(stored["files"])
+        if stored.get("key") != key or not all((stem.parent / n).is_file() for n in files):
             return None
         with np.load(npz) as data:
-            return trimesh.Trimesh(vertices=data["vertices"], faces=data["faces"], process=False,
+            mesh = trimesh.Trimesh(vertices=data["vertices"], faces=data["faces"], process=False,
                                    vertex_colors=data["vertex_colors"] if "vertex_colors" in data else None)
+        return mesh, files
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
@@ -137,10 +140,11 @@ def export_source_mesh(scene: Any, field: Any, stem: Path, shared: Optional[Path
     copied instead of extracting and baking again. Returns the field-frame mesh (None: no surface)."""
     key = mesh_key(scene, field)
     if shared is not None and shared != stem:
-        mesh = recall_mesh(shared, key)
-        if mesh is not None:
+        recalled = recall_mesh(shared, key)
+        if recalled is not None:
+            mesh, files = recalled
             stem.parent.mkdir(parents=True, exist_ok=True)
-            for name in json.loads(_cache(shared)[1].read_text())["files"]:
+            for name in files:
                 shutil.copy2(shared.parent / name, stem.parent / name)
             remember_mesh(stem, mesh, key, scene.cfg.export.formats)
             log.info("source mesh: copied from %s (the same field and export settings)", shared.parent)
