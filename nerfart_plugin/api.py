@@ -223,8 +223,9 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
         if r.kind != "stylization" or r.weights != (1.0,):
             raise ConfigError(f"mix: {r.folder} is not a stylization as trained; mix stylizations of one source.")
     source = runs[0].source
+    content = _content(source.checkpoint)
     for r in runs[1:]:
-        if _content(r.source.checkpoint) != _content(source.checkpoint):
+        if _content(r.source.checkpoint) != content:
             raise ConfigError(f"mix: the runs stylize different sources: {source.checkpoint} and "
                               f"{r.source.checkpoint} differ in content; mix stylizations of the same reconstruction.")
     renderer = blended_renderer(runs[0].renderer, source.renderer, [r.renderer for r in runs], weights)

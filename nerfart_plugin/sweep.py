@@ -216,7 +216,7 @@ def markdown_table(rows: list[dict[str, Any]], title: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-#: the failed jobs of the last multirun of this process (:class:`MultirunSummary`): the CLI exits 1 when any
+#: the failed jobs of the last multirun (:class:`MultirunSummary`; the CLI clears it first, exits 1 when any)
 failed_jobs: list[int] = []
 
 
@@ -228,9 +228,6 @@ class MultirunSummary(Callback):
     With the Optuna sweeper, its ``optimization_results.yaml`` (best params/value) is
     included as ``optuna``.
     """
-
-    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
-        failed_jobs.clear()
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         sweep_dir = Path(config.hydra.sweep.dir)
