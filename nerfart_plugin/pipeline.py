@@ -28,14 +28,12 @@ from omegaconf import DictConfig
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.factories import SceneContext, Style, build_scene, build_style
 from nerfart_plugin.schema import RunConfig, parse_config, show
-from nerfart_plugin.stages import ExportStage, ReconstructStage, RenderStage, StylizeStage, stylization_source
+from nerfart_plugin.stages import (ExportStage, PreviewStage, ReconstructStage, RenderStage, StylizeStage,
+                                   stylization_source)
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 
 log = logging.getLogger("nerfart_plugin")
-
-STAGES = ("reconstruct", "stylize", "all", "export", "render")
-
 
 def validate_config(c: Any) -> dict:
     """Every setting checked before anything is loaded (:mod:`nerfart_plugin.schema`: types, ranges,
@@ -58,7 +56,7 @@ def check_stage(c: RunConfig) -> None:
                           "backward passes (Section 4.4) on one device. Run stage=reconstruct with DDP, then "
                           "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1 "
                           "source_checkpoint=<the DDP run>/final.ckpt.")
-    if c.stage in ("stylize", "all"):
+    if c.stage in ("stylize", "all", "preview"):
         from nerfart_plugin.guidance import validate_prompt
 
         if c.prompt is None:
@@ -140,25 +138,32 @@ class Pipeline:
         self.results["reconstruction"] = result.summary
         return result.checkpoint
 
-    def stylize(self) -> Path:
+    def stylize(self, stage: type[StylizeStage] = StylizeStage, name: str = "stylization") -> Path:
         """Stage 2 (a finished stylization is not redone); returns its ``final.ckpt``."""
         source, source_key = stylization_source(self._loaded(), self.recon)
         if not source.exists():
             raise NerfArtError(f"No reconstruction at {source} for this data + backbone + settings. Run "
                                "stage=reconstruct (or stage=all) first, or pass source_checkpoint=/path/final.ckpt.")
-        result = StylizeStage(self.scene_context, self.style, source, source_key).run()
-        self.results["stylization"] = result.summary
+        result = stage(self.scene_context, self.style, source, source_key).run()
+        self.results[name] = result.summary
         return result.checkpoint
+
+    def preview(self) -> Path:
+        """``stage=preview``: a short low-resolution stylization (:class:`~nerfart_plugin.stages.PreviewStage`)."""
+        return self.stylize(PreviewStage, "preview")
 
     def export(self) -> None:
         """``stage=export``: meshes from ``source_checkpoint`` (or the cached reconstruction)."""
         ckpt = Path(self.cfg.source_checkpoint) if self.cfg.source_checkpoint else self.recon_dir / "final.ckpt"
-        self.results["export"] = ExportStage(self._loaded(), ckpt).run().summary
+        self.results["export"] = ExportStage(self.cfg, ckpt, self._loaded()).run().summary
 
     def render(self) -> None:
         """``stage=render``: videos of ``render.run``, else of this config's finished stylization (with a prompt)
         or reconstruction."""
-        run_dir = Path(self.cfg.render.run).expanduser() if self.cfg.render.run else self.finished_run_dir()
+        if self.cfg.mix.runs:
+            run_dir = None
+        else:
+            run_dir = Path(self.cfg.render.run).expanduser() if self.cfg.render.run else self.finished_run_dir()
         self.results["render"] = RenderStage(self.cfg, run_dir).run().summary
 
     def finished_run_dir(self) -> Path:
@@ -190,10 +195,13 @@ class Pipeline:
     def _run(self) -> dict[str, Any]:
         stage = self.cfg.stage
         L.seed_everything(self.cfg.seed, workers=True, verbose=False)
-        if stage == "render" and self.cfg.render.run:  # a given run folder: no data, no guidance
+        if stage == "render" and (self.cfg.render.run or self.cfg.mix.runs):  # given runs: no data, no guidance
             self.render()
             return self.results
-        if stage in ("stylize", "all") or (stage == "render" and self.cfg.prompt is not None):
+        if stage == "export" and self.cfg.mix.runs:
+            self.results["export"] = ExportStage(self.cfg, None).run().summary
+            return self.results
+        if stage in ("stylize", "all", "preview") or (stage == "render" and self.cfg.prompt is not None):
             self.prepare_guidance()
         self.load_data()
         if stage == "render":
@@ -202,10 +210,12 @@ class Pipeline:
         if stage == "export":
             self.export()
             return self.results
-        if stage in ("reconstruct", "all") and not self.cfg.source_checkpoint:
+        if stage in ("reconstruct", "all", "preview") and not self.cfg.source_checkpoint:
             self.reconstruct()
         if stage in ("stylize", "all"):
             self.stylize()
+        if stage == "preview":
+            self.preview()
         return self.results
 
 

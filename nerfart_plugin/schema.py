@@ -267,6 +267,9 @@ class ExportConfig(Section):
                             "(xatlas) with the field's colour baked into a texture, for Blender and co.")
     texture_size: Int = Setting(1024, ge=64, le=8192, description="side (pixels) of the baked texture",
                                 off="export.texture=false writes no textured meshes")
+    texture_faces: Int = Setting(20000, ge=0, le=10**8, description="triangles of the textured copy: the mesh is "
+                                 "decimated to this many before its UV unwrap (the texture carries the colour "
+                                 "detail; the plain mesh files keep every triangle); 0: no decimation")
 
 
 LoggerName = Literal["tensorboard", "csv", "wandb"]
@@ -347,11 +350,35 @@ PromptText = Annotated[str, BeforeValidator(_prompt_text), Field(min_length=1)]
 PathText = Union[str, Path]
 
 
+MixWeight = Annotated[Float, Field(ge=-1.0, le=2.0)]
+
+
+class PreviewConfig(Section):
+    """``preview``: ``stage=preview``, a short low-resolution stylization of the cached reconstruction that tells
+    in about a minute whether a prompt moves the guide and the judge (every other setting as ``stylize``)."""
+
+    steps: Int = Setting(24, ge=1, le=10_000, description="optimizer steps of the preview (one view each)")
+    resolution: Annotated[Int, Field(ge=16, le=1024)] = Setting(96, description="long side (pixels) of the "
+                                                                 "preview's views")
+
+
+class MixConfig(Section):
+    """``mix``: stage=render / stage=export of several stylizations of one source, combined without retraining:
+    θ_src + Σ_i w_i (θ_i − θ_src) (:mod:`nerfart_plugin.blend`). Outputs go into the first run's folder, named
+    ``-mix<weights>-<hash of the runs>``."""
+
+    runs: list[PathText] = Setting([], description="stylization run folders of ONE reconstruction to combine "
+                                   "([]: no mix)", changes_results=False)
+    weights: list[MixWeight] = Setting([], description="one weight per run, each in [-1, 2] (0: leave that style "
+                                       "out, 1: all of it)", changes_results=False)
+
+
 class RunConfig(Section):
     """The top-level keys of a run's config, with the sections as nested models."""
 
-    stage: Literal["reconstruct", "stylize", "all", "export", "render"] = Setting("all", description="which stages to run",
-                                                                         changes_results=False)
+    stage: Literal["reconstruct", "stylize", "all", "export", "render", "preview"] = Setting(
+        "all", description="which stages to run (preview: a short low-resolution stylization, preview.*)",
+        changes_results=False)
     prompt: Optional[PromptText] = Setting(None, description="the style text; required for stylize/all")
     source_prompt: PromptText = Setting("auto", description="source text of the directional loss; auto: from "
                                         "the capture type")
@@ -377,6 +404,8 @@ class RunConfig(Section):
     strength: Float = Setting(1.0, ge=0.0, le=2.0, description="stage=render / stage=export of a stylization: "
                               "the style's strength without retraining (0: the source, 1: as trained, 2: twice its "
                               "change; outputs named -s<strength>)", changes_results=False)
+    mix: MixConfig = Field(default_factory=MixConfig)
+    preview: PreviewConfig = Field(default_factory=PreviewConfig)
     render: RenderConfig = Field(default_factory=RenderConfig)
     reconstruct: ReconstructConfig = Field(default_factory=ReconstructConfig)
     stylize: StylizeConfig = Field(default_factory=StylizeConfig)
@@ -391,10 +420,12 @@ class RunConfig(Section):
     guidance: dict[str, Any] = Field(default_factory=lambda: {"name": "clip"})
 
 
+
 #: section name -> model, for the sections with fixed keys
 SECTIONS: dict[str, type[Section]] = {
     "render": RenderConfig, "reconstruct": ReconstructConfig, "stylize": StylizeConfig, "export": ExportConfig,
-    "trainer": TrainerConfig, "experiment": ExperimentConfig, "logger": LoggerConfig,
+    "trainer": TrainerConfig, "experiment": ExperimentConfig, "logger": LoggerConfig, "mix": MixConfig,
+    "preview": PreviewConfig,
 }
 
 
@@ -838,11 +869,28 @@ def cross_checks(c: dict) -> list[Issue]:
     _per_step(issues, "stylize.patch_size", sc["patch_size"] ** 2, "stylize.num_samples", ns, MAX_GRAD_SAMPLES,
               "per patch (patch_size^2 rays)")
     _per_step(issues, "stylize.chunk", sc["chunk"], "stylize.num_samples", ns, MAX_NOGRAD_SAMPLES, "per chunk")
+    issues += _blend_checks(c)
     exp = c["experiment"]
     lambdas = [k for k in exp if k.startswith("lambda_")]
     if c["stage"] in ("stylize", "all") and lambdas and all(float(exp[k]) == 0 for k in lambdas):
         issues.append(Issue("experiment", {k: exp[k] for k in lambdas}, "every lambda is 0, so stylization would "
                             "optimize nothing: set at least one, e.g. experiment.lambda_dir=1.0"))
+    return issues
+
+
+def _blend_checks(c: dict) -> list[Issue]:
+    """``strength`` and ``mix``: one weight per run, one way to blend, only where a run is rendered or exported."""
+    issues: list[Issue] = []
+    runs, weights = c["mix"]["runs"], c["mix"]["weights"]
+    if len(runs) != len(weights):
+        issues.append(Issue("mix.weights", weights, f"one weight per run of mix.runs ({len(runs)} run(s)), e.g. "
+                            "mix.runs=[A,B] mix.weights=[0.5,0.5]"))
+    if runs and float(c["strength"]) != 1.0:
+        issues.append(Issue("strength", c["strength"], "with mix.runs a mix's weights are its strengths: drop "
+                            "strength= and scale mix.weights instead"))
+    if runs and c["stage"] not in ("render", "export"):
+        issues.append(Issue("mix.runs", runs, f"a mix is rendered or exported, not trained (stage={c['stage']}): "
+                            "add stage=render or stage=export"))
     return issues
 
 

@@ -16,9 +16,11 @@ then ``final.ckpt``.
 from __future__ import annotations
 
 import logging
+import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Iterator, Optional
 
 import numpy as np
 import torch
@@ -43,6 +45,22 @@ class StageResult:
     summary: dict[str, Any] = field(default_factory=dict)
 
 
+class StageClock:
+    """Wall seconds of the parts of a stage (fit, evaluation, video, meshes), kept in ``metrics.json`` as
+    ``stage_seconds`` so that a user (and the main-job benchmark) sees where the time went."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def part(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)
+
+
 class TrainingStage:
     """The skeleton both training stages share; subclasses say what is trained and what is written."""
 
@@ -50,6 +68,7 @@ class TrainingStage:
 
     def __init__(self, scene: SceneContext) -> None:
         self.scene = scene
+        self.clock = StageClock()
 
     def run(self) -> StageResult:
         """Reuse the finished run, or compute it holding the folder's lock."""
@@ -66,7 +85,9 @@ class TrainingStage:
         fit = self.fit(system)
         if not fit.is_global_zero:  # DDP: evaluation and outputs on rank 0 only
             return StageResult(self.folder.final)
+        self.clock.seconds["fit"] = round(fit.seconds, 3)
         metrics = self.outputs(system, fit)
+        metrics["stage_seconds"] = self.clock.seconds
         write_cameras(self.scene, self.folder.path)
         atomic_write_json(self.folder.path / "metrics.json", metrics)
         save_final(fit, self.folder)
@@ -141,12 +162,14 @@ class ReconstructStage(TrainingStage):
         from nerfart_plugin.evaluation import evaluate_views
 
         system.to(self.scene.device).eval()
-        metrics = evaluate_views(system, self.scene.dm.val_dataloader(), chunk=self.scene.cfg.render.chunk)
+        with self.clock.part("evaluation"):
+            metrics = evaluate_views(system, self.scene.dm.val_dataloader(), chunk=self.scene.cfg.render.chunk)
         metrics.update({"train_seconds_this_process": fit.seconds, "steps": fit.steps,
                         "scene_setup": self.scene.setup.to_dict(), "notes": self.scene.notes,
                         "occupied_fraction": system.occupied_fraction})
         if self.scene.cfg.export.enabled:
-            export_source_mesh(self.scene, system.field, self.folder.path / "mesh" / "source")
+            with self.clock.part("meshes"):
+                export_source_mesh(self.scene, system.field, self.folder.path / "mesh" / "source")
         log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics["psnr"], self.folder.path)
         return metrics
 
@@ -194,10 +217,13 @@ class StylizeStage(TrainingStage):
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
         c, st = self.scene.cfg, self.style
-        metrics = self.heldout_metrics(system)
-        metrics.update(self.video(system))
+        with self.clock.part("evaluation"):
+            metrics = self.heldout_metrics(system)
+        with self.clock.part("video"):
+            metrics.update(self.video(system))
         if c.export.enabled:
-            metrics.update(self.compare_meshes(system))
+            with self.clock.part("meshes"):
+                metrics.update(self.compare_meshes(system))
         metrics.update({"prompt": st.raw_prompt, "prompt_used": st.prompt, "source_prompt": st.source_prompt,
                         "guidance": c.guidance["name"], "guidance_is_real": st.real, "stamp": st.stamp or None,
                         "experiment": c.experiment.model_dump(mode="json"), "steps": fit.steps,
@@ -307,6 +333,86 @@ class StylizeStage(TrainingStage):
         return {f"mesh_{k}": v for k, v in m.items()}
 
 
+class PreviewStage(StylizeStage):
+    """``stage=preview``: the stylization of the same source, prompt and losses, shortened to ``preview.steps``
+    steps at ``preview.resolution`` px, without video or meshes, into ``previews/<prompt>-<backbone>-<key>/``:
+    ``preview.png`` (source | preview on the held-out views), ``heldout/`` and ``metrics.json`` with the
+    guide's and the judge's scores. A finished preview is reused (its scores logged again)."""
+
+    reused_message = "this preview is already complete: %s (not recomputed)"
+
+    def __init__(self, scene: SceneContext, style: Style, source: Path, source_key: str) -> None:
+        super().__init__(preview_scene(scene), style, source, source_key)
+        self.folder = RunFolder(scene.root / "previews" / self.folder.path.name, "preview")
+
+    def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        from nerfart_plugin.export.video import image_grid, save_image, side_by_side
+
+        with self.clock.part("evaluation"):
+            metrics = self.heldout_metrics(system)
+        ids = sorted(int(p.stem.split("_")[1]) for p in (self.folder.path / "heldout").glob("source_*.png"))
+        rows = [side_by_side(*(_read_png(self.folder.path / "heldout" / f"{n}_{i:04d}.png") for n in ("source", "stylized")),
+                             labels=("source", f"preview, {fit.steps} steps")) for i in ids]
+        save_image(image_grid(rows, ncols=1), self.folder.path / "preview.png")
+        metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "steps": fit.steps,
+                        "resolution": self.settings.resolution, "train_seconds_this_process": fit.seconds,
+                        "source_checkpoint": str(Path(self.source).resolve()), "stamp": self.style.stamp or None})
+        log_preview(self.folder.path, metrics)
+        return metrics
+
+    def reuse(self) -> StageResult:
+        result = super().reuse()
+        metrics = _read_json(self.folder.path / "metrics.json")
+        log_preview(self.folder.path, metrics)
+        return StageResult(result.checkpoint, {**result.summary, **self.summary(metrics)})
+
+    def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
+        judge = metrics.get("judge") or {}
+        return {"preview": str(self.folder.path / "preview.png"), "judge": judge,
+                **{k: v for k, v in metrics.items() if k.startswith("clip_")}}
+
+
+def preview_scene(scene: SceneContext) -> SceneContext:
+    """``scene`` under the preview's settings: ``preview.steps`` / ``preview.resolution`` in place of the
+    stylization's, no video, no saved renders, no meshes."""
+    import copy
+
+    plain = copy.deepcopy(scene.plain)
+    pc = scene.cfg.preview
+    plain["stylize"].update(steps=pc.steps, epochs=None, resolution=pc.resolution, video_frames=0, render_every=0)
+    plain["export"]["enabled"] = False
+    return scene.with_config(plain)
+
+
+def log_preview(folder: Path, metrics: dict[str, Any]) -> None:
+    """One line a user reads: did the prompt move the judge, where is the picture."""
+    judge = metrics.get("judge") or {}
+    if "stylized" in judge:
+        log.info("preview of %r: the judge's P(%s) %.4f -> %.4f, top-5 on %.0f%% -> %.0f%% of the held-out views; "
+                 "see %s", metrics.get("prompt"), judge["target_class"], judge["source"]["mean_target_prob"],
+                 judge["stylized"]["mean_target_prob"], 100 * judge["source"]["top5_rate"],
+                 100 * judge["stylized"]["top5_rate"], folder / "preview.png")
+    else:
+        log.info("preview of %r (judge: %s); see %s", metrics.get("prompt"), judge.get("skipped", "none"),
+                 folder / "preview.png")
+
+
+def _read_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        return np.asarray(im.convert("RGB"))
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    import json
+
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
 def _unstyled_warning(style: Style) -> Optional[str]:
     """The ``WARNING`` of ``metrics.json`` when the guide is not a real CLIP (None when it is)."""
     if style.stamp.startswith("_VERIFY"):
@@ -326,47 +432,61 @@ def write_cameras(scene: SceneContext, folder: Path) -> None:
     atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame, scene.ndc))
 
 
-class ExportStage:
-    """``stage=export``: meshes of ``checkpoint`` into ``<its folder>/mesh/export-<name>-r<resolution>.*``."""
+def blended_run(cfg: Any, folder: Optional[Path]) -> Any:
+    """The :class:`~nerfart_plugin.api.Run` that ``stage=render`` / ``stage=export`` work on: ``mix.runs`` at
+    ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``."""
+    from nerfart_plugin.api import mix, open_run
 
-    def __init__(self, scene: SceneContext, checkpoint: Path) -> None:
-        self.scene, self.checkpoint = scene, Path(checkpoint)
+    if cfg.mix.runs:
+        return mix([open_run(Path(r).expanduser(), device=cfg.device) for r in cfg.mix.runs], cfg.mix.weights)
+    run = open_run(folder, device=cfg.device)
+    return run if cfg.strength == 1.0 else run.with_strength(cfg.strength)
+
+
+@dataclass
+class MeshTarget:
+    """Where a blended run's mesh is written from: the export settings (``cfg.export``) and the capture's
+    cameras, as :func:`~nerfart_plugin.export.run_meshes.export_mesh` reads them from a scene."""
+
+    cfg: Any
+    cameras: Any
+
+
+class ExportStage:
+    """``stage=export``: meshes of ``checkpoint`` (at ``strength``, or the ``mix``) into
+    ``<its folder>/mesh/export-<name>-r<resolution><blend tag>.*``."""
+
+    def __init__(self, cfg: Any, checkpoint: Optional[Path], scene: Optional[SceneContext] = None) -> None:
+        self.cfg, self.scene = cfg, scene
+        self.checkpoint = None if checkpoint is None else Path(checkpoint)
 
     def run(self) -> StageResult:
-        if not self.checkpoint.exists():
-            raise NerfArtError(f"stage=export: no checkpoint at {self.checkpoint}. Run stage=reconstruct first or "
-                               "pass source_checkpoint=/path/to/final.ckpt.")
-        strength = self.scene.cfg.strength
-        if strength != 1.0:  # a stylization at another strength (nerfart_plugin.blend)
-            from nerfart_plugin.api import open_run
-
-            renderer = open_run(self.checkpoint, device=str(self.scene.device)).with_strength(strength).renderer
+        if self.cfg.mix.runs or self.cfg.strength != 1.0:  # a blend (nerfart_plugin.blend): read through the run
+            run = blended_run(self.cfg, self.checkpoint)
+            ckpt, field, target, tag = run.checkpoint, run.renderer.field, MeshTarget(self.cfg, run.cameras), run.tag
         else:
+            ckpt, target, tag = self.checkpoint, self.scene, ""
+            if not ckpt.exists():
+                raise NerfArtError(f"stage=export: no checkpoint at {ckpt}. Run stage=reconstruct first or pass "
+                                   "source_checkpoint=/path/to/final.ckpt.")
             renderer = build_renderer(self.scene.cfg, self.scene.setup)
-            renderer.load_state_dict(load_renderer_state(self.checkpoint, self.scene))
-            renderer.to(self.scene.device).eval()
-        from nerfart_plugin.blend import blend_tag
-
-        stem = self.checkpoint.parent / "mesh" / (f"export-{self.checkpoint.stem}-r{self.scene.cfg.export.resolution}"
-                                                  f"{blend_tag([strength])}")
-        mesh = export_mesh(self.scene, renderer.field, stem)
-        return StageResult(self.checkpoint, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
+            renderer.load_state_dict(load_renderer_state(ckpt, self.scene))
+            field = renderer.to(self.scene.device).eval().field
+        stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{tag}"
+        mesh = export_mesh(target, field, stem)
+        return StageResult(ckpt, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
 
 
 class RenderStage:
     """``stage=render``: videos of a finished run along ``render.path`` into ``<run>/render/<path>-<F>f-<W>x<H>/``
     (:meth:`nerfart_plugin.api.Run.write_render`); nothing is trained."""
 
-    def __init__(self, cfg: Any, run_dir: Path) -> None:
-        self.cfg, self.run_dir = cfg, Path(run_dir)
+    def __init__(self, cfg: Any, run_dir: Optional[Path]) -> None:
+        self.cfg, self.run_dir = cfg, None if run_dir is None else Path(run_dir)
 
     def run(self) -> StageResult:
-        from nerfart_plugin.api import open_run
-
         rc = self.cfg.render
-        run = open_run(self.run_dir, device=self.cfg.device)
-        if self.cfg.strength != 1.0:
-            run = run.with_strength(self.cfg.strength)
+        run = blended_run(self.cfg, self.run_dir)
         resolution = None if rc.resolution == "auto" else int(rc.resolution)
         path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
         out = run.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}{run.tag}"

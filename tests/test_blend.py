@@ -133,3 +133,35 @@ def test_render_and_export_stages_take_the_strength_and_keep_each_strength_apart
                     f"hydra.run.dir={tmp_path}/hydra"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert (run / "mesh" / "export-final-r24-s0.50.ply").is_file()
+
+
+@pytest.mark.slow
+def test_render_and_export_stages_mix_runs_into_the_first_runs_folder(styles, tmp_path):
+    red, blue = styles["red"], styles["blue"]
+    mix_args = [f"mix.runs=[{red},{blue}]", "mix.weights=[0.5,0.5]", f"output_root={tmp_path}",
+                f"hydra.run.dir={tmp_path}/hydra"]
+    proc = run_cli(["stage=render", "render.frames=2", "render.resolution=24", *mix_args])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    tag = blend_tag([0.5, 0.5], [str(red), str(blue)])
+    assert (red / "render" / f"orbit-2f-24x24{tag}" / f"rgb{tag}_UNSTYLED-toy.mp4").is_file()
+    proc = run_cli(["stage=export", "export.resolution=24", "export.texture=false", *mix_args])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert (red / "mesh" / f"export-final-r24{tag}.ply").is_file()
+    proc = run_cli(["stage=render", f"mix.runs=[{red},{styles['other']}]", "mix.weights=[0.5,0.5]",
+                    f"output_root={tmp_path}", f"hydra.run.dir={tmp_path}/hydra"])
+    assert proc.returncode == 2 and "different sources" in proc.stdout + proc.stderr
+
+
+def test_mix_settings_are_checked_before_any_work():
+    from nerfart_plugin.factories import load_config
+    from nerfart_plugin.schema import parse_config
+
+    def issues(*overrides: str) -> str:
+        with pytest.raises(ConfigError) as exc:
+            parse_config(load_config(overrides))
+        return str(exc.value)
+
+    assert "one weight per run of mix.runs (2 run(s))" in issues("stage=render", "mix.runs=[a,b]", "mix.weights=[0.5]")
+    text = issues("stage=all", "mix.runs=[a]", "mix.weights=[0.5]", "strength=0.5")
+    assert "strength=0.5: with mix.runs" in text and "add stage=render or stage=export" in text
+    assert "mix.weights=[3]" in issues("stage=export", "mix.runs=[a]", "mix.weights=[3]")

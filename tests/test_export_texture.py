@@ -69,3 +69,14 @@ def test_export_obj_mtl_png_and_glb(sphere_and_mesh, tmp_path) -> None:
     geom = next(iter(glb.geometry.values())) if isinstance(glb, trimesh.Scene) else glb
     assert geom.visual.material.baseColorTexture.size == (128, 128)
     assert len(geom.faces) == len(tex.faces)
+
+
+def test_the_textured_copy_is_decimated_to_the_face_budget_and_stays_on_the_surface(sphere_and_mesh) -> None:
+    field, mesh = sphere_and_mesh
+    budget = len(mesh.faces) // 4
+    tex = bake_texture(mesh, field, size=256, faces=budget)
+    assert 0.8 * budget <= len(tex.faces) <= budget + 2
+    radius = np.linalg.norm(tex.vertices, axis=1)  # the sphere of radius 0.5, kept by the decimation
+    assert np.abs(radius - 0.5).max() < 0.02
+    assert len(bake_texture(mesh, field, size=64, faces=0).faces) == len(mesh.faces)  # 0: every triangle
+    assert len(bake_texture(mesh, field, size=64, faces=10**6).faces) == len(mesh.faces)

@@ -51,7 +51,7 @@ def export_mesh(scene: Any, field: Any, stem: Path, texture: bool = True):
         from nerfart_plugin.export.texture import bake_texture, export_textured
 
         try:
-            textured = bake_texture(mesh, field, size=ec.texture_size, chunk=ec.chunk)
+            textured = bake_texture(mesh, field, size=ec.texture_size, chunk=ec.chunk, faces=ec.texture_faces)
         except NerfArtError as exc:
             log.warning("no textured mesh for %s: %s", stem, exc)
         else:

@@ -4,13 +4,17 @@ Vertex colours (``export/mesh.py``) carry one colour per vertex; Blender and
 most viewers show them only with extra setup, and a 128^3 marching-cubes mesh
 has too few vertices for the stylized detail. :func:`bake_texture` instead
 
-1. unwraps the mesh with xatlas (``xatlas.parametrize``: charts packed into
-   one atlas; vertices on chart seams are duplicated);
+1. decimates the mesh to ``faces`` triangles (VTK's quadric decimation through
+   pyvista: a marching-cubes mesh has far more triangles than its shape needs,
+   and the UV unwrap's time grows faster than linearly with them; the texture
+   carries the colour detail) and unwraps it with xatlas (``xatlas.parametrize``:
+   charts packed into one atlas; vertices on chart seams are duplicated);
 2. rasterizes every atlas triangle into a ``size`` x ``size`` texture (OpenCV
    ``fillConvexPoly`` of the triangle's index), so each texel knows its
    triangle and, from barycentric coordinates, its 3D point and normal;
-3. queries the field's colour there, as :meth:`MeshExtractor.colorize` does
-   for vertices (the mean over ``views`` directions looking at the surface);
+3. queries the field's colour there, seen head-on (``views`` directions
+   looking at the surface averaged, as :meth:`MeshExtractor.colorize` does
+   for vertices; one by default);
 4. grows the charts by ``padding`` texels (OpenCV inpainting) so that
    bilinear filtering and mip-mapping do not bleed the background into seams.
 
@@ -33,6 +37,23 @@ from nerfart_plugin.export.mesh import field_device, view_directions
 from nerfart_plugin.utils.io import atomic_path
 
 log = logging.getLogger(__name__)
+
+
+def decimate(mesh: trimesh.Trimesh, faces: int) -> trimesh.Trimesh:
+    """``mesh`` reduced to about ``faces`` triangles (quadric decimation, pyvista/VTK); unchanged when it has
+    no more than that, or ``faces`` is 0."""
+    import pyvista as pv
+
+    n = len(mesh.faces)
+    if faces <= 0 or n <= faces:
+        return mesh
+    cells = np.hstack([np.full((n, 1), 3, dtype=np.int64), np.asarray(mesh.faces, dtype=np.int64)]).ravel()
+    reduced = pv.PolyData(np.asarray(mesh.vertices, dtype=np.float64), cells).decimate(1.0 - faces / n)
+    out = trimesh.Trimesh(np.asarray(reduced.points, dtype=np.float64), reduced.faces.reshape(-1, 4)[:, 1:],
+                          process=False)
+    log.info("Decimated the mesh from %d to %d triangles for its UV atlas (export.texture_faces=%d)", n,
+             len(out.faces), faces)
+    return out
 
 
 def unwrap(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -103,15 +124,18 @@ def field_colors(field: Any, points: np.ndarray, normals: np.ndarray, views: int
     return rgb.clamp(0, 1).cpu().numpy()
 
 
-def bake_texture(mesh: trimesh.Trimesh, field: Any, size: int = 1024, views: int = 3, padding: int = 4,
-                 chunk: int = 65536) -> trimesh.Trimesh:
-    """A copy of ``mesh`` with a UV atlas and a ``size`` x ``size`` texture of the field's colour.
+def bake_texture(mesh: trimesh.Trimesh, field: Any, size: int = 1024, views: int = 1, padding: int = 4,
+                 chunk: int = 65536, faces: int = 0) -> trimesh.Trimesh:
+    """A copy of ``mesh`` (decimated to ``faces`` triangles) with a UV atlas and a ``size`` x ``size`` texture
+    of the field's colour.
 
     Args:
         mesh: world-space mesh of ``field`` (e.g. from :class:`MeshExtractor`).
         field: anything with ``forward(x [N,3], d [N,3]) -> {"rgb": [N,3]}``.
         size: texture side (pixels), 64..8192.
-        views: view directions averaged per texel.
+        faces: triangles of the textured copy (:func:`decimate`); 0: as many as ``mesh``.
+        views: view directions averaged per texel (1: the colour seen head-on, along the inward normal;
+            a texture has ~20x more points than the mesh has vertices, so each direction costs).
         padding: texels by which charts are grown into the empty atlas.
     Returns: a ``trimesh.Trimesh`` with ``TextureVisuals`` (uv, PIL image).
     """
@@ -121,6 +145,7 @@ def bake_texture(mesh: trimesh.Trimesh, field: Any, size: int = 1024, views: int
         raise ConfigError(f"export.texture_size={size}: use 64..8192 pixels.")
     if len(mesh.faces) == 0:
         raise NerfArtError("Cannot texture an empty mesh: the field has no surface at the extraction level.")
+    mesh = decimate(mesh, int(faces))
     vmap, faces, uv = unwrap(mesh)
     vertices = np.asarray(mesh.vertices)[vmap]
     normals = np.asarray(mesh.vertex_normals)[vmap]

@@ -94,7 +94,7 @@ def write_video(frames: Sequence[np.ndarray], path: str | os.PathLike, fps: int 
     return path
 
 
-def _label(img: np.ndarray, text: str) -> np.ndarray:
+def label_image(img: np.ndarray, text: str) -> np.ndarray:
     """Draw ``text`` in the top-left corner of an HxWx3 uint8 image (PIL default font)."""
     from PIL import Image, ImageDraw, ImageFont
 
@@ -120,7 +120,7 @@ def side_by_side(
     """
     a, b = to_uint8(a), to_uint8(b)
     if labels is not None:
-        a, b = _label(a, labels[0]), _label(b, labels[1])
+        a, b = label_image(a, labels[0]), label_image(b, labels[1])
     h = max(a.shape[0], b.shape[0])
     pad = lambda x: np.pad(x, ((0, h - x.shape[0]), (0, 0), (0, 0)), constant_values=255)
     spacer = np.full((h, gap, 3), 255, np.uint8)

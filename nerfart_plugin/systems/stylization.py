@@ -391,5 +391,7 @@ class StylizationSystem(RenderSystem):
     # ------------------------------------------------------------------ rendering for outputs
     @torch.no_grad()
     def render_batch(self, batch: dict[str, Any], source: bool = False) -> dict[str, Tensor]:
-        """A full view of the stylized (or, ``source=True``, the source) field -> images [H,W,C]."""
-        return self.render_view(batch, chunk=self.cfg.chunk, renderer=self.source if source else None)
+        """A full view of the stylized (or, ``source=True``, the source) field -> rgb, depth and opacity
+        images [H,W,C] (no normals: an SDF's normal costs a gradient of the field per sample)."""
+        return self.render_view(batch, chunk=self.cfg.chunk, renderer=self.source if source else None,
+                                with_normals=False)

@@ -1,0 +1,237 @@
+"""The strength dial and style mixing, measured on finished stylizations of one source.
+
+For every stylization run given (default: those of the main-job benchmark, ``benchmarks/main_job.py``,
+which stylizes the shipped head toward three prompts from one reconstruction), at each strength s:
+
+* the independent judge's mean target probability and top-5 hits on the run's held-out views
+  (the views of its ``metrics.json``), rendered at the run's resolution; the Spearman rank
+  correlation of the probability with s (target >= 0.9) and whether s = 1.25 scores >= s = 1;
+* exactness at the ends: PSNR of s = 0 against the source run's own render (target >= 40 dB) and
+  of s = 1 against the run's own render (target >= 50 dB), same cameras and render settings;
+* view consistency: the warping error between neighbouring frames of a short orbit (as the
+  stylization's video measures it), relative to the source's;
+* geometry: mean |displacement| of the blended field's mesh from the source mesh (world units);
+* the cost of the dial: switching the strength of a loaded run and rendering one 256 px view.
+
+Then a 50/50 mix of the first two runs: both targets' probabilities (they should lie between the
+source and each pure run). Pictures for the docs: a strength strip (``docs/images/strength_strip.png``)
+and source | A | mix | B (``docs/images/mix.png``).
+
+    python benchmarks/strength.py                                   # the main-job benchmark's runs
+    python benchmarks/strength.py --runs outputs/stylizations/A outputs/stylizations/B
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import common  # noqa: E402
+
+log = logging.getLogger("bench.strength")
+NAME = "strength"
+STRENGTHS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5)
+STRIP = (0.0, 0.5, 1.0, 1.5)
+ORBIT_FRAMES = 8
+IMAGES = ROOT / "docs" / "images"
+
+
+def render_raw(run: Any, view: int, resolution: int | None = None) -> dict[str, torch.Tensor]:
+    """rgb [H,W,3], depth [H,W], opacity [H,W] (floats) of capture view ``view`` at the run's resolution."""
+    return render_camera(run, run.camera(view, resolution))
+
+
+@torch.no_grad()
+def render_camera(run: Any, rp: Any, i: int = 0) -> dict[str, torch.Tensor]:
+    from nerfart_plugin.data.rays import camera_batch
+
+    cams = run.cameras
+    batch = camera_batch(rp.K[i], rp.c2w[i], rp.height, rp.width, float(cams.near.min()), float(cams.far.max()),
+                         cams.ndc)
+    batch = {k: v.to(run.device) if torch.is_tensor(v) else v for k, v in batch.items()}
+    out = run.renderer.render_chunked(batch, chunk=run.config.render.chunk, with_normals=False)
+    H, W = rp.height, rp.width
+    return {"rgb": out["rgb"].reshape(H, W, 3).clamp(0, 1).cpu(), "depth": out["depth"].reshape(H, W).cpu(),
+            "opacity": out["opacity"].reshape(H, W).cpu()}
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
+
+
+def judge_of(run: Any, judge: Any, target: int, views: Sequence[int]) -> dict[str, Any]:
+    imgs = torch.stack([render_raw(run, v)["rgb"].permute(2, 0, 1) for v in views])
+    a = judge.assess(imgs, target)
+    return {"p": a["mean_target_prob"], "top5": sum(1 for v in a["per_view"] if v["target_rank"] < 5),
+            "images": imgs}
+
+
+def consistency(run: Any) -> float | None:
+    """Mean warping error between neighbouring frames of a short orbit (the video's measure)."""
+    from nerfart_plugin.evaluation import view_consistency
+
+    rp = run.camera_path("orbit", ORBIT_FRAMES, 128)
+    frames = [render_camera(run, rp, i) for i in range(len(rp))]
+    K = torch.as_tensor(rp.K[0], dtype=torch.float32)
+    c2ws = torch.as_tensor(np.asarray(rp.c2w), dtype=torch.float32)
+    return view_consistency([{"rgb": f["rgb"], "depth": f["depth"][..., None], "opacity": f["opacity"][..., None]}
+                             for f in frames], K, c2ws)
+
+
+def displacement(run: Any, source_mesh: Any) -> float:
+    from nerfart_plugin.export.compare import compare_meshes
+
+    return float(compare_meshes(run.mesh(128, frame="normalized"), source_mesh, n_samples=20_000)["vertex_mean_abs"])
+
+
+def measure_run(folder: Path, judge: Any) -> dict[str, Any]:
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.guidance.imagenet import imagenet_classes
+
+    run = open_run(folder, device="cpu")
+    prompt = run.metrics["prompt"]
+    target = imagenet_classes().find(prompt)
+    views = list(run.metrics["judge"]["views"])
+    source_mesh = run.source.mesh(128, frame="normalized")
+    exact_source = psnr(render_raw(run.with_strength(0.0), views[0])["rgb"], render_raw(run.source, views[0])["rgb"])
+    exact_run = psnr(render_raw(run.with_strength(1.0), views[0])["rgb"], render_raw(run, views[0])["rgb"])
+    rows = []
+    for s in STRENGTHS:
+        t0 = time.perf_counter()
+        blended = run.with_strength(s)
+        j = judge_of(blended, judge, target, views)
+        rows.append({"s": s, "p": j["p"], "top5": j["top5"], "consistency": consistency(blended),
+                     "displacement": displacement(blended, source_mesh), "seconds": time.perf_counter() - t0})
+        log.info("%s s=%.2f: P=%.4f top-5 %d/%d", prompt, s, j["p"], j["top5"], len(views))
+    t0 = time.perf_counter()
+    run.with_strength(0.5).render(views[0], resolution=256)
+    switch = time.perf_counter() - t0
+    return {"folder": str(folder), "prompt": prompt, "views": views, "exact_source_db": exact_source,
+            "exact_run_db": exact_run, "curve": rows, "switch_render_256_s": switch,
+            "source_consistency": consistency(run.source)}
+
+
+def spearman(xs: Sequence[float], ys: Sequence[float]) -> float:
+    from scipy.stats import spearmanr
+
+    return float(spearmanr(xs, ys).statistic)
+
+
+def measure_mix(a_dir: Path, b_dir: Path, judge: Any) -> dict[str, Any]:
+    from nerfart_plugin.api import mix, open_run
+    from nerfart_plugin.export.video import save_image, side_by_side
+    from nerfart_plugin.guidance.imagenet import imagenet_classes
+
+    a, b = open_run(a_dir, device="cpu"), open_run(b_dir, device="cpu")
+    half = mix([a, b], [0.5, 0.5])
+    views = list(a.metrics["judge"]["views"])
+    out: dict[str, Any] = {"a": a.metrics["prompt"], "b": b.metrics["prompt"]}
+    for key, run in (("source", a.source), ("a", a), ("mix", half), ("b", b)):
+        for which, prompt in (("p_a", out["a"]), ("p_b", out["b"])):
+            out.setdefault(key, {})[which] = judge_of(run, judge, imagenet_classes().find(prompt), views)["p"]
+    pics = [render_raw(r, views[1])["rgb"].numpy() for r in (a.source, a, half, b)]
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    left = side_by_side(pics[0], pics[1], labels=("source", out["a"]))
+    right = side_by_side(pics[2], pics[3], labels=("50/50 mix", out["b"]))
+    save_image(side_by_side(left, right, labels=None), IMAGES / "mix.png")
+    return out
+
+
+def strength_strip(folder: Path) -> None:
+    """``docs/images/strength_strip.png``: one held-out view of the run at the strengths of :data:`STRIP`."""
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.export.video import image_grid, label_image, save_image, to_uint8
+
+    run = open_run(folder, device="cpu")
+    view = run.metrics["judge"]["views"][1]
+    tiles = [label_image(to_uint8(render_raw(run.with_strength(s), view)["rgb"]), f"s = {s:g}") for s in STRIP]
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    save_image(image_grid(tiles, ncols=len(tiles)), IMAGES / "strength_strip.png")
+
+
+# --------------------------------------------------------------------------- report
+def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
+    body = ["Each stylization run at strengths s (θ = θ_src + s·(θ_run − θ_src), the occupancy grid re-estimated "
+            "for the blended field): the independent judge (EfficientNet-Lite2) on the run's held-out views at "
+            "its resolution, the warping error along an 8-frame 128 px orbit relative to the source's, and the "
+            "mean |displacement| of the blended field's 128^3 mesh from the source mesh (normalized units).", ""]
+    verdicts = []
+    for r in raw["runs"]:
+        curve = r["curve"]
+        rho = spearman([c["s"] for c in curve], [c["p"] for c in curve])
+        p1 = next(c["p"] for c in curve if c["s"] == 1.0)
+        p125 = next(c["p"] for c in curve if c["s"] == 1.25)
+        body += [f"### {r['prompt']}", ""]
+        rows = [[f"{c['s']:g}", f"{c['p']:.4f}", f"{c['top5']}/{len(r['views'])}",
+                 common.fmt(None if c["consistency"] is None or not r["source_consistency"]
+                            else c["consistency"] / r["source_consistency"]),
+                 f"{c['displacement']:.4f}"] for c in curve]
+        body += common.md_table(["s", "judge P(target)", "top-5 views", "view-consistency ratio",
+                                 "mean abs displacement"], rows)
+        body += ["", f"Spearman(s, P) = {rho:.2f}; s = 0 vs the source render {r['exact_source_db']:.1f} dB, s = 1 "
+                     f"vs the run's render {r['exact_run_db']:.1f} dB; switching the strength and rendering one 256 px "
+                     f"view: {r['switch_render_256_s']:.2f} s.", ""]
+        verdicts.append(f"- {r['prompt']}: Spearman >= 0.9 **{'MET' if rho >= 0.9 else 'NOT MET'}** ({rho:.2f}); "
+                        f"s = 1.25 >= s = 1 **{'MET' if p125 >= p1 else 'NOT MET'}**; s = 0 >= 40 dB "
+                        f"**{'MET' if r['exact_source_db'] >= 40 else 'NOT MET'}**; s = 1 >= 50 dB "
+                        f"**{'MET' if r['exact_run_db'] >= 50 else 'NOT MET'}**; switch + 256 px render <= 1 s "
+                        f"**{'MET' if r['switch_render_256_s'] <= 1 else 'NOT MET'}** ({r['switch_render_256_s']:.2f} s)")
+    m = raw.get("mix")
+    if m:
+        body += [f"### Mixing {m['a']} and {m['b']} 50/50", ""]
+        body += common.md_table(["field", f"P({m['a']})", f"P({m['b']})"],
+                                [[k, f"{m[k]['p_a']:.4f}", f"{m[k]['p_b']:.4f}"] for k in ("source", "a", "mix", "b")])
+        between = all(min(m["source"][p], m[k][p]) <= m["mix"][p] <= max(m["source"][p], m[k][p])
+                      for p, k in (("p_a", "a"), ("p_b", "b")))
+        verdicts.append(f"- the mix's two target probabilities lie between the source and each pure run: "
+                        f"**{'MET' if between else 'NOT MET'}**")
+        body += ["", "![source | A | mix | B](docs/images/mix.png)", ""]
+    body += ["![strength strip](docs/images/strength_strip.png)", "", "**Targets**", "", *verdicts]
+    return common.section(NAME, "The strength dial and style mixing (head)", cmd, info, body, False)
+
+
+def default_runs() -> list[Path]:
+    return sorted((ROOT / "outputs" / "benchmarks" / "main_job" / "stylizations").glob("*"))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--runs", nargs="+", type=Path, default=None, help="stylization folders of one source")
+    p.add_argument("--raw", type=Path, default=None)
+    p.add_argument("--report-only", action="store_true")
+    common.add_common_args(p)
+    args = p.parse_args(argv)
+    info = common.start_logging(log)
+    raw_file = args.raw or common.raw_path(NAME, args.quick)
+    if args.report_only:
+        raw = json.loads(raw_file.read_text())
+    else:
+        from nerfart_plugin.evaluation import ImageNetJudge
+
+        runs = [r for r in (args.runs or default_runs()) if (r / "final.ckpt").is_file()]
+        if not runs:
+            raise SystemExit("no finished stylization runs: run benchmarks/main_job.py first, or pass --runs")
+        judge = ImageNetJudge()
+        raw = {"runs": [measure_run(r, judge) for r in runs]}
+        if len(runs) >= 2:
+            raw["mix"] = measure_mix(runs[0], runs[1], judge)
+        strength_strip(runs[0])
+        raw_file.write_text(json.dumps(raw, indent=1, default=str))
+    common.finish(args, NAME, report(raw, info, common.command("strength.py", argv or sys.argv[1:])))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
