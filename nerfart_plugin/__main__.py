@@ -87,7 +87,7 @@ def check_output_root(argv: list[str]) -> None:
 
         root = RunConfig.model_fields["output_root"].default
     if isinstance(root, str) and "${" not in root:
-        check_writable_dir(root, "output_root")
+        check_writable_dir(root, "output_root", create=False)
 
 
 def main() -> None:

@@ -90,11 +90,12 @@ def fit_stage(system: L.LightningModule, folder: RunFolder, *, steps: int, devic
         NerfArtError: out of memory, naming the settings to lower.
         CheckpointError: a ``last.ckpt`` that cannot be read or does not fit.
     """
-    from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt
+    from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt, ProjectedTime
 
     ckpt = AtomicCheckpoint(folder.path, checkpoint_every)
     stop = GracefulInterrupt(ckpt)
-    trainer = build_trainer(steps, device, trainer_cfg, [ckpt, stop, *callbacks], run_dir=folder.path,
+    projected = ProjectedTime(f"the {folder.what}")
+    trainer = build_trainer(steps, device, trainer_cfg, [ckpt, stop, projected, *callbacks], run_dir=folder.path,
                             logger_cfg=logger_cfg, **trainer_kw)
     resume = folder.resume_point(system)
     t0 = time.perf_counter()

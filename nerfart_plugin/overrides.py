@@ -220,14 +220,53 @@ def add_plus(arg: str, primary: PrimaryConfig) -> str:
     return "+" + arg
 
 
+# ---------------------------------------------------------------------- values Hydra's lexer refuses
+_OVERRIDE = re.compile(r"^(~|\+{0,2})([\w.@/-]+)=(.*)$", re.DOTALL)
+_PLACEHOLDER = re.compile(r"<[^<>=]*>")
+_NO_CONFIG_FLAGS = ("--cfg", "-c")
+
+
+def check_value_syntax(argv: list[str]) -> list[str]:
+    """Every ``key=value`` that Hydra's grammar refuses, made right or refused with a sentence: a value with
+    letters outside ASCII (``data.path=/data/scène``) is quoted for Hydra; a placeholder copied from the
+    docs (``<run>``) and any other unparsable value get a ConfigError saying what to type instead."""
+    out = []
+    for arg in argv:
+        m = _OVERRIDE.match(arg)
+        if not m or _parse(m.group(2), m.group(3)) is not None or _PROMPT_ARG.match(arg):
+            out.append(arg)
+            continue
+        prefix, key, value = m.groups()
+        hole = _PLACEHOLDER.search(value)
+        if hole:
+            raise ConfigError(f"{key}={value}: {hole.group()} is a placeholder from the docs; put the real value "
+                              f"in its place (for a run: a folder under outputs/stylizations/ or "
+                              "outputs/reconstructions/; ls lists them).")
+        if not value.isascii() and _parse(key, hydra_quote(value)) is not None:
+            out.append(f"{prefix}{key}={hydra_quote(value)}")
+            continue
+        raise ConfigError(f"{key}={value}: Hydra's override grammar cannot read this value; quote it for Hydra "
+                          f"inside the shell's quotes: '{key}=\"{value}\"'.")
+    return out
+
+
+def check_flags(argv: list[str]) -> None:
+    """ConfigError for flag combinations Hydra refuses with a traceback: ``-m`` with ``--cfg``."""
+    if any(a in MULTIRUN_FLAGS for a in argv) and any(a in _NO_CONFIG_FLAGS or a.startswith("--cfg=") for a in argv):
+        raise ConfigError("--cfg prints the config of ONE job and -m starts a sweep of several: Hydra cannot do both. "
+                          "Drop -m and give one value per key (e.g. backbone=neus +prompt=Joker) to see that job's "
+                          "config.")
+
+
 def normalize_overrides(argv: list[str], primary: Optional[PrimaryConfig] = None) -> list[str]:
     """The command line as Hydra should see it: prompts quoted, ``+`` folded where Hydra would refuse it and
     added where Hydra would refuse a plain override of an unknown key (:func:`add_plus`).
 
     ``primary``: what the composed config already has (default: composed from ``argv``'s group selections).
     """
+    check_flags(argv)
     multirun = any(a in MULTIRUN_FLAGS for a in argv)
-    argv = quote_prompts(list(argv), multirun)
+    argv = check_value_syntax(quote_prompts(list(argv), multirun))
     if not any("=" in a and not a.startswith(("++", "-", "~")) for a in argv):
         return argv
     primary = primary if primary is not None else primary_config(argv)

@@ -277,12 +277,25 @@ def test_a_mistyped_key_without_plus_gets_the_closest_valid_keys(tmp_path):
         _assert_clear_error(_cli(typo, "stage=reconstruct", f"output_root={tmp_path}"), f"did you mean {suggestion}?")
 
 
+def test_values_hydras_lexer_refuses_get_a_sentence_or_are_quoted(tmp_path):
+    root = tmp_path / "never_made"
+    _assert_clear_error(_cli("stage=render", "render.run=outputs/stylizations/<run>", f"output_root={root}"),
+                        "<run> is a placeholder from the docs")
+    _assert_clear_error(_cli("data.path=a b(c", f"output_root={root}"), "quote it for Hydra", "'data.path=\"a b(c\"'")
+    _assert_clear_error(_cli("-m", "backbone=neus,volsdf", "+prompt=Joker,Pixar", "--cfg", "job"),
+                        "--cfg prints the config of ONE job")
+    assert not root.exists()  # a refused command leaves no empty output folder
+    # letters outside ASCII are quoted for Hydra and arrive intact
+    assert normalize_overrides(["data.path=/data/scène"]) == ["data.path='/data/scène'"]
+    assert _job_cfg("data.path=/data/scène")["data"]["path"] == "/data/scène"
+
+
 def test_blank_prompt_and_bad_stage_are_clear_errors():
     _assert_clear_error(
         _cli("prompt=  ", "stage=stylize", "guidance=toy"), "prompt", "empty"
     )
     _assert_clear_error(
-        _cli("stage=bogus"), "stage='bogus'", "reconstruct, stylize, all, export"
+        _cli("stage=bogus"), "stage='bogus'", "reconstruct, stylize, all, export, render, preview"
     )
 
 

@@ -397,3 +397,26 @@ def test_no_unsafe_deserialization_in_the_package():
                     r"yaml\.load\(", r"torch\.load\((?![^)]*weights_only=True)"):
         hits = [str(p) for p, text in src.items() if re.search(pattern, text)]
         assert not hits, (pattern, hits)
+
+
+def test_a_fit_projected_past_an_hour_is_announced_early(monkeypatch, caplog):
+    """``preset=paper`` on a CPU is ~78 s/step: the user hears the projection after a few steps, not never."""
+    import logging
+    import types
+
+    from nerfart_plugin.systems import callbacks
+    from nerfart_plugin.systems.callbacks import ProjectedTime, format_duration
+
+    clock = iter([100.0, 100.0 + 3 * 78.0])
+    monkeypatch.setattr(callbacks.time, "perf_counter", lambda: next(clock))
+    cb = ProjectedTime("the reconstruction", probe_steps=3)
+    module = types.SimpleNamespace(device=torch.device("cpu"))
+    with caplog.at_level(logging.INFO, logger="nerfart_plugin.systems.callbacks"):
+        for step in (1, 2, 3, 4):
+            cb.on_train_batch_end(types.SimpleNamespace(global_step=step, max_steps=100_000, is_global_zero=True),
+                                  module)
+    assert cb.projected_s == pytest.approx(78.0 * 99_996)
+    warning = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert warning and "78.00 s/step on cpu" in warning[0].getMessage() and "90 days" in warning[0].getMessage()
+    assert "preset=balanced" in warning[0].getMessage()
+    assert [format_duration(s) for s in (42, 600, 7200, 10 * 86400)] == ["42 s", "10 min", "2.0 h", "10 days"]

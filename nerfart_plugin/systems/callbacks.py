@@ -1,4 +1,5 @@
-"""Callbacks shared by both stages: atomic checkpoints, Ctrl-C at a step boundary, a finite-value guard."""
+"""Callbacks shared by both stages: atomic checkpoints, Ctrl-C at a step boundary, a finite-value guard, the
+projected time of a fit."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import logging
 import os
 import signal
 import threading
+import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import lightning as L
 import torch
@@ -144,3 +146,48 @@ def check_finite_losses(terms: dict[str, torch.Tensor], step: int, stage: str) -
             f"{stage}: non-finite loss at step {step}: {bad}. The last good checkpoint is kept; lower the "
             f"learning rate or the weight (lambda_*) of the term(s) {sorted(bad)}."
         )
+
+
+class ProjectedTime(L.Callback):
+    """Says early how long the whole fit will take: after ``probe_steps`` steps (past the first, which
+    warms up), a WARNING when the projection at the measured pace passes ``warn_seconds``, naming what
+    makes it shorter; an INFO line otherwise. Nothing is stopped: the user decides."""
+
+    def __init__(self, what: str, probe_steps: int = 3, warn_seconds: float = 3600.0) -> None:
+        self.what, self.probe_steps, self.warn_seconds = what, int(probe_steps), float(warn_seconds)
+        self._t0: Optional[float] = None
+        self._start = 0
+        self.projected_s: Optional[float] = None
+
+    def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
+        step = int(trainer.global_step)
+        if self.projected_s is not None or not trainer.is_global_zero:
+            return
+        if self._t0 is None:  # the first step (or the first after a resume) warms up: start the clock after it
+            self._t0, self._start = time.perf_counter(), step
+            return
+        done = step - self._start
+        if done < self.probe_steps:
+            return
+        per_step = (time.perf_counter() - self._t0) / done
+        left = max(0, int(trainer.max_steps) - step)
+        self.projected_s = per_step * left
+        device = pl_module.device.type
+        text = (f"{self.what}: {per_step:.2f} s/step on {device}, so the {left} steps left take about "
+                f"{format_duration(self.projected_s)}")
+        if self.projected_s > self.warn_seconds:
+            log.warning("%s. Shorter: a lighter preset (preset=balanced or preset=draft), fewer steps, or a GPU "
+                        "(device=cuda); Ctrl-C stops with a checkpoint that the same command resumes.", text)
+        else:
+            log.info("%s.", text)
+
+
+def format_duration(seconds: float) -> str:
+    """``42 s``, ``12 min``, ``3.4 h``, ``90 days``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.0f} min"
+    if seconds < 3 * 86400:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 86400:.0f} days"

@@ -64,8 +64,10 @@ def hash_files(paths: list[Path], extra: str = "") -> str:
 MIN_FREE_BYTES = 64 * 2**20
 
 
-def check_writable_dir(path: str | os.PathLike, key: str = "output_root") -> Path:
+def check_writable_dir(path: str | os.PathLike, key: str = "output_root", create: bool = True) -> Path:
     """Create folder ``path`` if needed and check that files can be written there, with free space left.
+    ``create=False`` creates nothing: a missing folder is judged by its nearest existing parent (the checks
+    before a command is accepted leave no empty folder behind when it is refused later).
 
     Returns:
         the folder.
@@ -80,6 +82,8 @@ def check_writable_dir(path: str | os.PathLike, key: str = "output_root") -> Pat
     if blocker is not None:
         raise ConfigError(f"{key}={path}: {blocker} is a file, so no folder can be made there; choose another "
                           f"{key} (a folder) or move that file.")
+    if not create:
+        folder = next(p for p in (folder, *folder.parents) if p.exists())
     try:
         folder.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(prefix=".write-test-", dir=folder)
