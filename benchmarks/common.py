@@ -174,6 +174,22 @@ def add_common_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-write", action="store_true", help="print the section only")
 
 
+def add_raw_args(p: argparse.ArgumentParser) -> None:
+    """``--raw`` (the raw JSON results) and ``--report-only`` (rebuild the section from them)."""
+    p.add_argument("--raw", type=Path, default=None, help="raw JSON results (default benchmarks/results/<name>.json)")
+    p.add_argument("--report-only", action="store_true", help="rebuild the section from --raw without measuring")
+
+
+def raw_results(args: argparse.Namespace, name: str, measure: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """With ``--report-only`` the raw results read back from ``--raw``; else ``measure()``, written there."""
+    raw_file = args.raw or raw_path(name, args.quick)
+    if args.report_only:
+        return json.loads(Path(raw_file).read_text())
+    raw = measure()
+    Path(raw_file).write_text(json.dumps(raw, indent=1, default=str))
+    return raw
+
+
 def output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     """(markdown file, figures folder) for these arguments: figures go to ``benchmarks/figures`` only
     for the real ``BENCHMARKS.md``; any other ``--out`` (or ``--quick``) gets a ``figures/`` folder

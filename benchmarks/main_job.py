@@ -151,6 +151,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
     body += ["", f"Reconstruction: held-out PSNR {common.fmt(recon.get('psnr'))} dB, SSIM "
                  f"{common.fmt(recon.get('ssim'), '.3f')} (all held-out views).", "", "**Targets**", ""]
     body += verdicts(jobs)
+    body += ["", *raw.get("notes", [])]
     return common.section(NAME, "The main job end to end (README quick start)", cmd, info, body, quick)
 
 
@@ -160,18 +161,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "main_job",
                    help="output root of the jobs (emptied first)")
     p.add_argument("--override", nargs="*", default=[], help="extra overrides for every job")
-    p.add_argument("--raw", type=Path, default=None, help="raw JSON results (default benchmarks/results/main_job.json)")
-    p.add_argument("--report-only", action="store_true", help="rebuild the section from --raw")
+    common.add_raw_args(p)
+    p.add_argument("--first-from", type=Path, default=None,
+                   help="with --report-only: take the first (timed) job from this raw file, e.g. a re-run of the "
+                        "README job alone on a quiet machine, and the other prompts from --raw")
+    p.add_argument("--note", nargs="*", default=[], help="lines added to the report")
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw_file = args.raw or common.raw_path(NAME, args.quick)
-    if args.report_only:
-        raw = json.loads(raw_file.read_text())
-    else:
-        extra = [*(QUICK_ARGS if args.quick else []), *args.override]
-        raw = {**measure(args.prompts[:1] if args.quick else args.prompts, args.out_root, extra), "extra": extra}
-        raw_file.write_text(json.dumps(raw, indent=1, default=str))
+    extra = [*(QUICK_ARGS if args.quick else []), *args.override]
+    raw = common.raw_results(args, NAME, lambda: {**measure(args.prompts[:1] if args.quick else args.prompts,
+                                                            args.out_root, extra), "extra": extra})
+    if args.first_from:
+        raw["jobs"][0] = json.loads(args.first_from.read_text())["jobs"][0]
+    raw["notes"] = args.note or raw.get("notes", [])
     common.finish(args, NAME, report(raw, info, common.command("main_job.py", argv or sys.argv[1:]), args.quick))
     return 0
 

@@ -15,7 +15,8 @@ which stylizes the shipped head toward three prompts from one reconstruction), a
 
 Then a 50/50 mix of the first two runs: both targets' probabilities (they should lie between the
 source and each pure run). Pictures for the docs: a strength strip (``docs/images/strength_strip.png``)
-and source | A | mix | B (``docs/images/mix.png``).
+and source | A | mix | B (``docs/images/mix.png``); and the README's gallery: per run, source |
+stylized | geometry (``docs/images/gallery.png``).
 
     python benchmarks/strength.py                                   # the main-job benchmark's runs
     python benchmarks/strength.py --runs outputs/stylizations/A outputs/stylizations/B
@@ -24,7 +25,6 @@ and source | A | mix | B (``docs/images/mix.png``).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 import time
@@ -161,6 +161,22 @@ def strength_strip(folder: Path) -> None:
     save_image(image_grid(tiles, ncols=len(tiles)), IMAGES / "strength_strip.png")
 
 
+def gallery(folders: Sequence[Path]) -> None:
+    """``docs/images/gallery.png``: per run, one held-out view as source | stylized | stylized normals."""
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.export.video import image_grid, label_image, save_image
+
+    tiles = []
+    for folder in folders:
+        run = open_run(folder, device="cpu")
+        view = run.metrics["judge"]["views"][1]
+        sty = run.render(view, channels=("rgb", "normal"))
+        tiles += [label_image(run.source.render(view, resolution=run.resolution)["rgb"], "source"),
+                  label_image(sty["rgb"], run.metrics["prompt"]), label_image(sty["normal"], "geometry")]
+    IMAGES.mkdir(parents=True, exist_ok=True)
+    save_image(image_grid(tiles, ncols=3), IMAGES / "gallery.png")
+
+
 # --------------------------------------------------------------------------- report
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     body = ["Each stylization run at strengths s (θ = θ_src + s·(θ_run − θ_src), the occupancy grid re-estimated "
@@ -206,29 +222,30 @@ def default_runs() -> list[Path]:
     return sorted((ROOT / "outputs" / "benchmarks" / "main_job" / "stylizations").glob("*"))
 
 
+def measure(folders: Sequence[Path]) -> dict[str, Any]:
+    """The curve of every finished run, the mix of the first two, and the pictures."""
+    from nerfart_plugin.evaluation import ImageNetJudge
+
+    runs = [r for r in folders if (r / "final.ckpt").is_file()]
+    if not runs:
+        raise SystemExit("no finished stylization runs: run benchmarks/main_job.py first, or pass --runs")
+    judge = ImageNetJudge()
+    raw: dict[str, Any] = {"runs": [measure_run(r, judge) for r in runs]}
+    if len(runs) >= 2:
+        raw["mix"] = measure_mix(runs[0], runs[1], judge)
+    strength_strip(runs[0])
+    gallery(runs)
+    return raw
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", nargs="+", type=Path, default=None, help="stylization folders of one source")
-    p.add_argument("--raw", type=Path, default=None)
-    p.add_argument("--report-only", action="store_true")
+    common.add_raw_args(p)
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw_file = args.raw or common.raw_path(NAME, args.quick)
-    if args.report_only:
-        raw = json.loads(raw_file.read_text())
-    else:
-        from nerfart_plugin.evaluation import ImageNetJudge
-
-        runs = [r for r in (args.runs or default_runs()) if (r / "final.ckpt").is_file()]
-        if not runs:
-            raise SystemExit("no finished stylization runs: run benchmarks/main_job.py first, or pass --runs")
-        judge = ImageNetJudge()
-        raw = {"runs": [measure_run(r, judge) for r in runs]}
-        if len(runs) >= 2:
-            raw["mix"] = measure_mix(runs[0], runs[1], judge)
-        strength_strip(runs[0])
-        raw_file.write_text(json.dumps(raw, indent=1, default=str))
+    raw = common.raw_results(args, NAME, lambda: measure(args.runs or default_runs()))
     common.finish(args, NAME, report(raw, info, common.command("strength.py", argv or sys.argv[1:])))
     return 0
 

@@ -197,6 +197,17 @@ def build_style(cfg: Any, guidance: Any = None, perceptual: Any = None) -> Style
     return Style(guidance, perceptual, real, stamp, raw, prompt, src)
 
 
+def check_style(style: Style, negatives: str) -> None:
+    """What stylization will resolve, resolved now, before any training: the prompts in the guide's terms
+    (``guidance=imagenet`` needs an ImageNet class) and the negative prompts (``stylize.negatives``: a
+    file must exist and parse). Raises the ConfigError the stylization would raise later."""
+    from nerfart_plugin.guidance import resolve_negatives
+
+    with torch.no_grad():
+        style.guidance.encode_text([style.prompt])
+    resolve_negatives(negatives, style.guidance, style.prompt)
+
+
 def stylize_settings(scene: SceneContext):
     """The ``stylize`` section with ``resolution: auto`` (the loaded images' long side: the data resolution
     policy, 256x256 head, 270x480 selfies) and ``epochs`` (steps = epochs x training views) resolved."""

@@ -26,7 +26,7 @@ import torch
 from omegaconf import DictConfig
 
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
-from nerfart_plugin.factories import SceneContext, Style, build_scene, build_style
+from nerfart_plugin.factories import SceneContext, Style, build_scene, build_style, check_style
 from nerfart_plugin.schema import RunConfig, parse_config, show
 from nerfart_plugin.stages import (ExportStage, PreviewStage, ReconstructStage, RenderStage, StylizeStage,
                                    stylization_source)
@@ -107,8 +107,10 @@ class Pipeline:
 
     # ------------------------------------------------------------------ what the stages share
     def prepare_guidance(self) -> None:
-        """Build CLIP/VGG (or toy) first, so missing weights fail before any training."""
+        """Build CLIP/VGG (or toy) and resolve the prompt and the negatives first, so missing weights, a prompt
+        the guide cannot take and a missing negatives file fail before any training."""
         self.style = build_style(self.cfg)
+        check_style(self.style, self.cfg.stylize.negatives)
 
     def load_data(self) -> None:
         """Load the scene and decide its setup; the reconstruction's run folder follows from them."""

@@ -1009,20 +1009,26 @@ def register_schema() -> None:
     ConfigStore.instance().store(name=SCHEMA_NODE, node=defaults_node())
 
 
-def _settings_lines(model: type[BaseModel], prefix: str = "") -> list[str]:
-    lines: list[str] = []
-    for name, info in model.model_fields.items():
+def settings_rows(model: type[BaseModel] = None, prefix: str = "") -> list[tuple[str, str, str, bool]]:
+    """Every setting of the sections with fixed keys as ``(dotted key, default as typed, description, in the
+    cache key)``: what ``--help`` and the documentation's settings reference list."""
+    rows: list[tuple[str, str, str, bool]] = []
+    for name, info in (model or RunConfig).model_fields.items():
         sub = _model_in(info.annotation)
         if sub is not None:
-            lines += _settings_lines(sub, f"{prefix}{name}.")
+            rows += settings_rows(sub, f"{prefix}{name}.")
             continue
         if typing.get_origin(info.annotation) is dict:
             continue  # component sections: their config groups
         default = info.get_default(call_default_factory=True)
-        default = default if isinstance(default, str) else show(default)
-        note = "" if changes_results(info) else " [not in the cache key]"
-        lines.append(f"  {prefix}{name}={default}: {info.description or ''}{note}")
-    return lines
+        rows.append((f"{prefix}{name}", default if isinstance(default, str) else show(default),
+                     info.description or "", changes_results(info)))
+    return rows
+
+
+def _settings_lines(model: type[BaseModel], prefix: str = "") -> list[str]:
+    return [f"  {key}={default}: {text}{'' if cached else ' [not in the cache key]'}"
+            for key, default, text, cached in settings_rows(model, prefix)]
 
 
 def help_text() -> str:

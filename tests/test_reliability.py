@@ -420,3 +420,16 @@ def test_a_fit_projected_past_an_hour_is_announced_early(monkeypatch, caplog):
     assert warning and "78.00 s/step on cpu" in warning[0].getMessage() and "90 days" in warning[0].getMessage()
     assert "preset=balanced" in warning[0].getMessage()
     assert [format_duration(s) for s in (42, 600, 7200, 10 * 86400)] == ["42 s", "10 min", "2.0 h", "10 days"]
+
+
+def test_what_stylization_will_need_is_checked_before_the_reconstruction(tmp_path):
+    """A missing negatives file and a prompt the guide cannot take stop the command at once, not after
+    the reconstruction (which took 105 s to 3 h before they were checked at the start)."""
+    from pipeline_helpers import run_cli
+
+    for args, expected in ((["guidance=toy", "+prompt=red", "stylize.negatives=/nonexistent.txt"],
+                            "/nonexistent.txt"),
+                           (["guidance=imagenet", "+prompt=asdfgh qwerty"], "names no ImageNet class")):
+        proc = run_cli([*args, f"output_root={tmp_path}", f"hydra.run.dir={tmp_path}/hydra"])
+        assert proc.returncode == 2 and expected in proc.stdout + proc.stderr, proc.stderr[-2000:]
+        assert not (tmp_path / "reconstructions").exists()

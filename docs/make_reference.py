@@ -1,0 +1,41 @@
+"""Write ``docs/reference/settings.md`` from the typed config (``nerfart_plugin.schema``), the one source of
+every setting, its default and its meaning: ``python docs/make_reference.py``. ``tests/test_docs.py`` fails
+when the committed page is not what this script writes."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGE = ROOT / "docs" / "reference" / "settings.md"
+
+
+def settings_page() -> str:
+    from nerfart_plugin.schema import settings_rows
+
+    lines = ["# Settings reference", "",
+             "Every setting of the sections with fixed keys, generated from the typed config "
+             "(`nerfart_plugin/schema.py`; `python docs/make_reference.py` rewrites this page). Set any of them on "
+             "the command line (`render.num_samples=64`) or in a config group. The component sections (`data`, "
+             "`backbone`, `encoding`, `guidance`) take the settings of the component they name: "
+             "`python -m nerfart_plugin data=llff --cfg job` prints them with their defaults.", "",
+             "*Cache key*: whether the setting changes results, so that a run with another value is computed "
+             "anew (no: it only changes where outputs go, how often a run logs or saves, or memory)."]
+    section = None
+    for key, default, text, cached in settings_rows():
+        head = key.split(".")[0] if "." in key else "run"
+        if head != section:
+            section = head
+            title = "Top-level keys" if head == "run" else f"`{head}`"
+            lines += ["", f"## {title}", "", "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
+        cell = text.replace("|", "\\|")
+        lines.append(f"| `{key}` | `{default}` | {cell} | {'yes' if cached else 'no'} |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(ROOT))
+    PAGE.parent.mkdir(parents=True, exist_ok=True)
+    PAGE.write_text(settings_page())
+    print(f"wrote {PAGE}")
