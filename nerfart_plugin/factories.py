@@ -268,7 +268,9 @@ def load_run(run_dir: Path | str, checkpoint: str = "final.ckpt") -> LoadedRun:
         raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point load_run at "
                            "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
     cfg, _ = typed(OmegaConf.load(path / "config.yaml"))
-    ckpt = load_checkpoint(ckpt_path, fix=SOURCE_FIX)
+    ckpt = load_checkpoint(ckpt_path, fix=f"If {ckpt_path.name} was damaged, run the command that made this run "
+                                          "again: it sets the damaged file aside and trains again from the run's "
+                                          "last.ckpt (nothing else in the folder is touched).")
     meta = ckpt.get(META_KEY)
     if not isinstance(meta, dict) or "setup" not in meta:
         raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "

@@ -150,7 +150,10 @@ def interrupted_message(trainer: Any, stop: Any, last: Optional[Path]) -> str:
 
 
 def save_final(result: FitResult, folder: RunFolder) -> Path:
-    """``final.ckpt`` (full state, atomically): the mark of a finished run."""
+    """``final.ckpt`` (full state, atomically): the mark of a finished run, with its content hash beside it."""
+    from nerfart_plugin.runs import write_checkpoint_hash
+
     with atomic_path(folder.final) as tmp:
         result.trainer.save_checkpoint(tmp)
+    write_checkpoint_hash(folder.final)
     return folder.final

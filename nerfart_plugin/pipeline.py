@@ -143,6 +143,8 @@ class Pipeline:
     def stylize(self, stage: type[StylizeStage] = StylizeStage, name: str = "stylization") -> Path:
         """Stage 2 (a finished stylization is not redone); returns its ``final.ckpt``."""
         source, source_key = stylization_source(self._loaded(), self.recon)
+        if not self.cfg.source_checkpoint:
+            self.recon.folder.set_aside_if_damaged()
         if not source.exists():
             raise NerfArtError(f"No reconstruction at {source} for this data + backbone + settings. Run "
                                "stage=reconstruct (or stage=all) first, or pass source_checkpoint=/path/final.ckpt.")

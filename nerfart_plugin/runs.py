@@ -6,7 +6,11 @@ Folders (under ``output_root``, default ``outputs/``):
   ``stylizations/<prompt>-<backbone>-<key><stamp>/``: ``<key>`` hashes every setting
   that changes the stage's result (:func:`nerfart_plugin.schema.result_settings`), so
   the same settings find the same folder and any change another.
-* ``final.ckpt`` marks a finished run: it is reused, never recomputed or overwritten.
+* ``final.ckpt`` marks a finished run: it is reused, never recomputed or overwritten. Its SHA-256 is kept
+  beside it (``final.ckpt.sha256``); before a finished run is reused it is verified (the hash, or for a
+  run written before hashes, a safe load). A damaged one (truncated, overwritten) is set aside as
+  ``final.ckpt.damaged-<time>`` with a warning and the stage runs again, resuming from ``last.ckpt``:
+  nothing healthy is deleted.
 * ``last.ckpt`` is the resume point of an unfinished run (``resume=true``, the
   default); ``resume=false`` moves an unfinished folder aside (renamed
   ``*.abandoned-<time>``) and starts over.
@@ -37,6 +41,36 @@ log = logging.getLogger("nerfart_plugin")
 
 T = TypeVar("T")
 FINAL, LAST = "final.ckpt", "last.ckpt"
+HASH_SUFFIX = ".sha256"
+
+
+def file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def write_checkpoint_hash(path: Path) -> None:
+    """``<path>.sha256``: the content hash a finished run is verified against before it is reused."""
+    atomic_write_text(Path(f"{path}{HASH_SUFFIX}"), file_sha256(path) + "\n")
+
+
+def checkpoint_damage(path: Path) -> Optional[str]:
+    """Why ``path`` (a finished run's ``final.ckpt``) cannot be trusted, or None when it is intact: its
+    stored hash differs, or (no hash stored) it does not load as a checkpoint."""
+    from nerfart_plugin.errors import CheckpointError
+
+    stored = Path(f"{path}{HASH_SUFFIX}")
+    if stored.is_file():
+        expected = stored.read_text().strip()
+        return None if file_sha256(path) == expected else f"its content does not match {stored.name}"
+    try:
+        load_checkpoint(path)
+    except CheckpointError as exc:
+        return str(exc)
+    return None
 
 
 def config_hash(obj: Any, n: int = 12) -> str:
@@ -93,9 +127,26 @@ class RunFolder:
         log.info("resuming the %s from %s (step %s)", self.what, self.last, ckpt.get("global_step"))
         return str(self.last)
 
+    def set_aside_if_damaged(self) -> None:
+        """A finished run whose ``final.ckpt`` is damaged (:func:`checkpoint_damage`) becomes unfinished: the
+        file is renamed ``final.ckpt.damaged-<time>`` (kept, not deleted) with a warning saying so."""
+        if not self.finished:
+            return
+        why = checkpoint_damage(self.final)
+        if why is None:
+            return
+        aside = self.final.with_name(f"{FINAL}.damaged-{time.strftime('%Y%m%d-%H%M%S')}")
+        self.final.rename(aside)
+        Path(f"{self.final}{HASH_SUFFIX}").unlink(missing_ok=True)
+        log.warning("%s is damaged (%s): set aside as %s; the %s runs again%s.", self.final, why, aside.name,
+                    self.what, " from its last.ckpt" if self.last.exists() else " from the start")
+
     def reuse_or_run(self, lock_timeout: Optional[float], work: Callable[[], T], reuse: Callable[[], T]) -> T:
-        """``reuse()`` for a finished run; else ``work()`` holding the folder's lock (a run finished meanwhile
-        by the process we waited for is reused)."""
+        """``reuse()`` for a finished, verified run; else ``work()`` holding the folder's lock (a run finished
+        meanwhile by the process we waited for is reused)."""
+        if self.finished:
+            with run_lock(self.path, lock_timeout):
+                self.set_aside_if_damaged()
         if not self.finished:
             with run_lock(self.path, lock_timeout):
                 if not self.finished:

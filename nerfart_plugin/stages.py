@@ -166,15 +166,30 @@ class ReconstructStage(TrainingStage):
             metrics = evaluate_views(system, self.scene.dm.val_dataloader(), chunk=self.scene.cfg.render.chunk)
         metrics.update({"train_seconds_this_process": fit.seconds, "steps": fit.steps,
                         "scene_setup": self.scene.setup.to_dict(), "notes": self.scene.notes,
-                        "occupied_fraction": system.occupied_fraction})
+                        "occupied_fraction": system.occupied_fraction, "evaluated_on": evaluation_views(self.scene.scene)})
         if self.scene.cfg.export.enabled:
             with self.clock.part("meshes"):
                 export_source_mesh(self.scene, system.field, self.folder.path / "mesh" / "source")
-        log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics["psnr"], self.folder.path)
+        if metrics["evaluated_on"] == "held-out views":
+            log.info("reconstruction done: held-out PSNR %.2f dB -> %s", metrics["psnr"], self.folder.path)
+        else:
+            log.warning("reconstruction done: PSNR %.2f dB on %s -> %s", metrics["psnr"], metrics["evaluated_on"],
+                        self.folder.path)
         return metrics
 
     def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
-        return {k: v for k, v in metrics.items() if k.startswith(("psnr", "ssim"))}
+        return {k: v for k, v in metrics.items() if k.startswith(("psnr", "ssim", "evaluated_on"))}
+
+
+def evaluation_views(scene: Any) -> str:
+    """What the reconstruction's PSNR is measured on: "held-out views", or, when no view is truly held out
+    (``data.holdout_every=1``, a one-view capture), a label that says it is a training-view evaluation."""
+    train = set(scene.train_ids or range(scene.num_images))
+    held = scene.val_ids or scene.train_ids[:1]
+    if held and not train & set(held):
+        return "held-out views"
+    return ("TRAINING views: no view is held out (data.holdout_every, or too few views), so this PSNR measures "
+            "the fit to the photos, not new views")
 
 
 # ---------------------------------------------------------------------- stage 2
@@ -262,6 +277,7 @@ class StylizeStage(TrainingStage):
                                                    torch.stack([o["opacity"][..., 0] for o in sty_out]))
         self.save_heldout(ids, src, sty)
         metrics["judge"] = judge_prompt(self.style.raw_prompt, src, sty, ids)
+        metrics["evaluated_on"] = evaluation_views(scene)
         from nerfart_plugin.systems.base import to_device
 
         dev = self.scene.device

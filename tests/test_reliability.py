@@ -433,3 +433,39 @@ def test_what_stylization_will_need_is_checked_before_the_reconstruction(tmp_pat
         proc = run_cli([*args, f"output_root={tmp_path}", f"hydra.run.dir={tmp_path}/hydra"])
         assert proc.returncode == 2 and expected in proc.stdout + proc.stderr, proc.stderr[-2000:]
         assert not (tmp_path / "reconstructions").exists()
+
+
+def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, caplog):
+    """Truncating a finished run's final.ckpt used to make the same command say "already complete";
+    now the damage is found, the file kept aside, and the run trained again from its last.ckpt."""
+    from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+    from nerfart_plugin.pipeline import run
+
+    from pipeline_helpers import tiny_cfg
+
+    cfg = tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=reconstruct", "reconstruct.steps=4", "export.enabled=false")
+    folder = Path(run(cfg)["reconstruction"]["dir"])
+    final = folder / "final.ckpt"
+    assert (folder / "final.ckpt.sha256").read_text().strip()
+    healthy = final.read_bytes()
+    final.write_bytes(healthy[: len(healthy) // 2])
+    with caplog.at_level(logging.WARNING, logger="nerfart_plugin"):
+        again = run(cfg)
+    assert "is damaged" in caplog.text and "set aside" in caplog.text
+    aside = list(folder.glob("final.ckpt.damaged-*"))
+    assert len(aside) == 1 and aside[0].stat().st_size == len(healthy) // 2  # kept, not deleted
+    assert Path(again["reconstruction"]["dir"]) == folder and final.is_file()
+    from nerfart_plugin.runs import checkpoint_damage
+
+    assert checkpoint_damage(final) is None  # healthy again, with a fresh hash
+
+
+def test_an_evaluation_on_training_views_is_labelled_as_such():
+    import types
+
+    from nerfart_plugin.stages import evaluation_views
+
+    assert evaluation_views(types.SimpleNamespace(train_ids=[1, 2, 3], val_ids=[0], num_images=4)) == "held-out views"
+    for scene in (types.SimpleNamespace(train_ids=[], val_ids=[0, 1, 2], num_images=3),  # data.holdout_every=1
+                  types.SimpleNamespace(train_ids=[0], val_ids=[], num_images=1)):  # a one-view capture
+        assert evaluation_views(scene).startswith("TRAINING views")
