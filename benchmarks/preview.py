@@ -50,10 +50,10 @@ def full_run_gains() -> dict[str, float]:
     return gains
 
 
-def run_preview(prompt: str, out_root: Path) -> dict[str, Any]:
+def run_preview(prompt: str, out_root: Path, extra: list[str]) -> dict[str, Any]:
     hydra_dir = out_root / "hydra" / f"preview-{time.time_ns()}"
     args = [sys.executable, "-m", "nerfart_plugin", "stage=preview", "guidance=imagenet", f"+prompt={prompt}",
-            f"output_root={out_root}", f"hydra.run.dir={hydra_dir}"]
+            f"output_root={out_root}", f"hydra.run.dir={hydra_dir}", *extra]
     t0 = time.perf_counter()
     proc = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, check=False)
     seconds = time.perf_counter() - t0
@@ -76,7 +76,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     paired = [(p["gain"], full[p["prompt"]]) for p in raw["previews"] if p["prompt"] in full]
     rho = float(spearmanr(*zip(*paired)).statistic) if len(paired) >= 3 else float("nan")
     slow = max(p["seconds"] for p in raw["previews"])
-    body = ["`stage=preview` (defaults: `preview.steps`, `preview.resolution`) on the main-job benchmark's "
+    body = [f"`stage=preview` ({' '.join(raw.get('override') or []) or 'defaults'}) on the main-job benchmark's "
             "reconstruction of the head, `guidance=imagenet`; full-run gains from the main-job and "
             "stylization-quality benchmarks (same defaults, 256 px, 200 steps).", ""]
     body += common.md_table(["prompt", "preview judge gain", "preview top-5", "full-run judge gain",
@@ -94,14 +94,16 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--prompts", nargs="+", default=list(PROMPTS))
+    p.add_argument("--override", nargs="*", default=[], help="extra overrides, e.g. preview.steps=48")
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "main_job",
                    help="the output root holding the cached reconstruction (the main-job benchmark's)")
     common.add_raw_args(p)
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw = common.raw_results(args, NAME, lambda: {"previews": [run_preview(prompt, args.out_root)
-                                                               for prompt in args.prompts], "full": full_run_gains()})
+    raw = common.raw_results(args, NAME, lambda: {"previews": [run_preview(prompt, args.out_root, args.override)
+                                                               for prompt in args.prompts], "full": full_run_gains(),
+                                                  "override": args.override})
     common.finish(args, NAME, report(raw, info, common.command("preview.py", argv or sys.argv[1:])))
     return 0
 

@@ -137,14 +137,15 @@ def measure_mix(a_dir: Path, b_dir: Path, judge: Any) -> dict[str, Any]:
     a, b = open_run(a_dir, device="cpu"), open_run(b_dir, device="cpu")
     half = mix([a, b], [0.5, 0.5])
     views = list(a.metrics["judge"]["views"])
-    out: dict[str, Any] = {"a": a.metrics["prompt"], "b": b.metrics["prompt"]}
+    prompts = [a.metrics["prompt"], b.metrics["prompt"]]
+    out: dict[str, Any] = {"prompts": prompts, "p": {}}
     for key, run in (("source", a.source), ("a", a), ("mix", half), ("b", b)):
-        for which, prompt in (("p_a", out["a"]), ("p_b", out["b"])):
-            out.setdefault(key, {})[which] = judge_of(run, judge, imagenet_classes().find(prompt), views)["p"]
+        out["p"][key] = {which: judge_of(run, judge, imagenet_classes().find(prompt), views)["p"]
+                         for which, prompt in zip(("p_a", "p_b"), prompts)}
     pics = [render_raw(r, views[1])["rgb"].numpy() for r in (a.source, a, half, b)]
     IMAGES.mkdir(parents=True, exist_ok=True)
-    left = side_by_side(pics[0], pics[1], labels=("source", out["a"]))
-    right = side_by_side(pics[2], pics[3], labels=("50/50 mix", out["b"]))
+    left = side_by_side(pics[0], pics[1], labels=("source", prompts[0]))
+    right = side_by_side(pics[2], pics[3], labels=("50/50 mix", prompts[1]))
     save_image(side_by_side(left, right, labels=None), IMAGES / "mix.png")
     return out
 
@@ -204,11 +205,13 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
                         f"**{'MET' if r['exact_source_db'] >= 40 else 'NOT MET'}**; s = 1 >= 50 dB "
                         f"**{'MET' if r['exact_run_db'] >= 50 else 'NOT MET'}**; switch + 256 px render <= 1 s "
                         f"**{'MET' if r['switch_render_256_s'] <= 1 else 'NOT MET'}** ({r['switch_render_256_s']:.2f} s)")
-    m = raw.get("mix")
-    if m:
-        body += [f"### Mixing {m['a']} and {m['b']} 50/50", ""]
-        body += common.md_table(["field", f"P({m['a']})", f"P({m['b']})"],
-                                [[k, f"{m[k]['p_a']:.4f}", f"{m[k]['p_b']:.4f}"] for k in ("source", "a", "mix", "b")])
+    mix = raw.get("mix")
+    if mix:
+        (pa, pb), m = mix["prompts"], mix["p"]
+        body += [f"### Mixing {pa} and {pb} 50/50", ""]
+        names = {"source": "source", "a": f"{pa} (run)", "mix": "50/50 mix", "b": f"{pb} (run)"}
+        body += common.md_table(["field", f"P({pa})", f"P({pb})"],
+                                [[names[k], f"{m[k]['p_a']:.4f}", f"{m[k]['p_b']:.4f}"] for k in names])
         between = all(min(m["source"][p], m[k][p]) <= m["mix"][p] <= max(m["source"][p], m[k][p])
                       for p, k in (("p_a", "a"), ("p_b", "b")))
         verdicts.append(f"- the mix's two target probabilities lie between the source and each pure run: "
