@@ -87,7 +87,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
              "asks for >= 8 prompts including some that fail: only prompts with a full run at these defaults "
              "can be ranked, and these all succeed in the full run",
              f"- each preview <= {TARGET_S:.0f} s from the command's start: "
-             f"**{'MET' if slow <= TARGET_S else 'NOT MET'}** (slowest {slow:.0f} s)"]
+             f"**{'MET' if slow <= TARGET_S else 'NOT MET'}** (slowest {slow:.0f} s)", "", *raw.get("notes", [])]
     return common.section(NAME, "The one-minute preview: does it predict the full run?", cmd, info, body, False)
 
 
@@ -95,6 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--prompts", nargs="+", default=list(PROMPTS))
     p.add_argument("--override", nargs="*", default=[], help="extra overrides, e.g. preview.steps=48")
+    p.add_argument("--note", nargs="*", default=[], help="lines added to the report")
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "main_job",
                    help="the output root holding the cached reconstruction (the main-job benchmark's)")
     common.add_raw_args(p)
@@ -104,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     raw = common.raw_results(args, NAME, lambda: {"previews": [run_preview(prompt, args.out_root, args.override)
                                                                for prompt in args.prompts], "full": full_run_gains(),
                                                   "override": args.override})
+    raw["notes"] = args.note or raw.get("notes", [])
     common.finish(args, NAME, report(raw, info, common.command("preview.py", argv or sys.argv[1:])))
     return 0
 

@@ -357,8 +357,8 @@ class PreviewConfig(Section):
     """``preview``: ``stage=preview``, a short low-resolution stylization of the cached reconstruction that tells
     in about a minute whether a prompt moves the guide and the judge (every other setting as ``stylize``)."""
 
-    steps: Int = Setting(24, ge=1, le=10_000, description="optimizer steps of the preview (one view each)")
-    resolution: Annotated[Int, Field(ge=16, le=1024)] = Setting(96, description="long side (pixels) of the "
+    steps: Int = Setting(48, ge=1, le=10_000, description="optimizer steps of the preview (one view each)")
+    resolution: Annotated[Int, Field(ge=16, le=1024)] = Setting(128, description="long side (pixels) of the "
                                                                  "preview's views")
 
 

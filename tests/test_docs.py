@@ -87,6 +87,7 @@ def test_the_readme_is_short_and_user_pages_do_not_leak_the_development_machine(
         assert (REPO / image).is_file() and (REPO / image).stat().st_size > 1000, image
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(shutil.which("mkdocs") is None and not any(
     (Path(p) / "mkdocs").exists() for p in sys.path), reason="mkdocs is in the dev extra")
 def test_the_documentation_site_builds_strictly(tmp_path):

@@ -24,6 +24,7 @@ def test_every_sample_names_its_source_and_its_files():
         download("nope")
 
 
+@pytest.mark.slow
 @needs_mirror
 def test_download_checks_every_file_resumes_and_loads(tmp_path, capsys):
     folder = download("girl", tmp_path, mirror=str(MIRROR))

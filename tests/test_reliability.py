@@ -435,6 +435,7 @@ def test_what_stylization_will_need_is_checked_before_the_reconstruction(tmp_pat
         assert not (tmp_path / "reconstructions").exists()
 
 
+@pytest.mark.slow
 def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, caplog):
     """Truncating a finished run's final.ckpt used to make the same command say "already complete";
     now the damage is found, the file kept aside, and the run trained again from its last.ckpt."""
