@@ -25,7 +25,7 @@ from typing import Any, Iterator, Mapping, Optional
 
 import torch
 
-from nerfart_plugin.errors import CheckpointError
+from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +63,7 @@ def load_checkpoint(path: str | Path, fix: str = "") -> dict[str, Any]:
     except pickle.UnpicklingError as exc:
         code = next((line.strip() for line in str(exc).splitlines() if "GLOBAL" in line), None)
         if code is not None:  # an object of a class or function outside the allow-list: how a pickle runs code
-            raise CheckpointError(
+            raise UnsafeCheckpointError(
                 f"Refusing to load {path}: it holds Python objects other than tensors and plain data "
                 f"({code.split(' was not an allowed')[0]}), and unpickling them could run code. nerfart_plugin only "
                 f"loads checkpoints made of tensors and plain data (the ones it writes). {fix}".strip()) from None

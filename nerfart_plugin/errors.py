@@ -27,6 +27,11 @@ class CheckpointError(NerfArtError, ValueError):
     """A checkpoint cannot be read safely, or does not fit the configured model."""
 
 
+class UnsafeCheckpointError(CheckpointError):
+    """A checkpoint whose unpickling would create objects other than tensors and plain data (how a pickle
+    runs code): refused as it is, never treated as mere damage."""
+
+
 class RunLockedError(NerfArtError, RuntimeError):
     """Another process holds the run folder (and did not release it within ``lock_timeout``)."""
 

@@ -59,8 +59,9 @@ def write_checkpoint_hash(path: Path) -> None:
 
 def checkpoint_damage(path: Path) -> Optional[str]:
     """Why ``path`` (a finished run's ``final.ckpt``) cannot be trusted, or None when it is intact: its
-    stored hash differs, or (no hash stored) it does not load as a checkpoint."""
-    from nerfart_plugin.errors import CheckpointError
+    stored hash differs, or (no hash stored) it does not load as a checkpoint. A file that would run code
+    when loaded is not damage: its :class:`~nerfart_plugin.errors.UnsafeCheckpointError` is raised."""
+    from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
 
     stored = Path(f"{path}{HASH_SUFFIX}")
     if stored.is_file():
@@ -68,6 +69,8 @@ def checkpoint_damage(path: Path) -> Optional[str]:
         return None if file_sha256(path) == expected else f"its content does not match {stored.name}"
     try:
         load_checkpoint(path)
+    except UnsafeCheckpointError:
+        raise
     except CheckpointError as exc:
         return str(exc)
     return None
