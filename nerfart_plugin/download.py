@@ -16,7 +16,6 @@ releases, e.g. a copy on a machine without internet access.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import logging
 import shutil
@@ -29,7 +28,7 @@ from typing import Any, Optional
 from tqdm import tqdm
 
 from nerfart_plugin.errors import DataError, NerfArtError
-from nerfart_plugin.utils.io import atomic_path
+from nerfart_plugin.utils.io import atomic_path, file_sha256
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -41,16 +40,8 @@ def manifest() -> dict[str, Any]:
     return json.loads(resources.files("nerfart_plugin").joinpath("assets/samples.json").read_text())
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def intact(path: Path, size: int, digest: str) -> bool:
-    return path.is_file() and path.stat().st_size == size and sha256(path) == digest
+    return path.is_file() and path.stat().st_size == size and file_sha256(path) == digest
 
 
 def fetch(source: str, target: Path, size: int, digest: str) -> None:
@@ -62,7 +53,7 @@ def fetch(source: str, target: Path, size: int, digest: str) -> None:
                 shutil.copyfileobj(response, out)
         else:
             shutil.copyfile(source, tmp)
-        got_size, got = Path(tmp).stat().st_size, sha256(Path(tmp))
+        got_size, got = Path(tmp).stat().st_size, file_sha256(tmp)
         if got_size != size or got != digest:
             raise DataError(f"{source}: got {got_size} bytes with SHA-256 {got[:12]}..., expected {size} bytes with "
                             f"{digest[:12]}...: the file at the source changed or the transfer broke; nothing was "
@@ -105,7 +96,7 @@ def main(argv: Optional[list[str]] = None) -> int:
     if args.list or not args.name:
         for name, entry in sorted(samples.items()):
             mb = sum(size for size, _ in entry["files"].values()) / 1e6
-            print(f"{name:18s} {mb:6.1f} MB  {entry['description']}")  # noqa: T201 (the command's output)
+            log.info("%-18s %6.1f MB  %s", name, mb, entry["description"])
         return 0
     try:
         download(args.name, args.dest, args.mirror)

@@ -34,7 +34,7 @@ from typing import Any, Callable, Optional, TypeVar
 from omegaconf import OmegaConf
 
 from nerfart_plugin.checkpoints import META_KEY, check_fits, load_checkpoint
-from nerfart_plugin.utils.io import atomic_write_text
+from nerfart_plugin.utils.io import atomic_write_text, file_sha256
 from nerfart_plugin.utils.lock import run_lock
 
 log = logging.getLogger("nerfart_plugin")
@@ -42,14 +42,6 @@ log = logging.getLogger("nerfart_plugin")
 T = TypeVar("T")
 FINAL, LAST = "final.ckpt", "last.ckpt"
 HASH_SUFFIX = ".sha256"
-
-
-def file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def write_checkpoint_hash(path: Path) -> None:

@@ -26,7 +26,7 @@ def test_every_sample_names_its_source_and_its_files():
 
 @pytest.mark.slow
 @needs_mirror
-def test_download_checks_every_file_resumes_and_loads(tmp_path, capsys):
+def test_download_checks_every_file_resumes_and_loads(tmp_path, caplog):
     folder = download("girl", tmp_path, mirror=str(MIRROR))
     assert len([f for f in folder.rglob("*") if f.is_file()]) == len(manifest()["girl"]["files"])
     image = sorted((folder / "images").iterdir())[0]
@@ -38,7 +38,11 @@ def test_download_checks_every_file_resumes_and_loads(tmp_path, capsys):
 
     scene = build_scene(load_config(["data=h3ds", f"data.path={folder}", "data.resolution=64"])).scene
     assert scene.num_images == 31
-    assert main(["--list"]) == 0 and "girl" in capsys.readouterr().out
+    import logging
+
+    with caplog.at_level(logging.INFO, logger="nerfart_plugin"):
+        assert main(["--list"]) == 0
+    assert "girl" in caplog.text and "fangzhou_nature" in caplog.text
 
 
 def test_content_that_does_not_match_is_refused_and_not_kept(tmp_path):

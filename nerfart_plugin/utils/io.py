@@ -48,6 +48,15 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n")
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 (hex) of one file's bytes, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
 def hash_files(paths: list[Path], extra: str = "") -> str:
     """SHA-256 over the contents (and relative names) of ``paths``, plus ``extra``; hex digest."""
     h = hashlib.sha256()
