@@ -164,6 +164,8 @@ class Style:
         real: both are real pretrained models (else the outputs are stamped).
         stamp: suffix of every output file ("" for real CLIP; ``_UNSTYLED-toy``, ``_VERIFY-imagenet``).
         raw_prompt / prompt: the prompt as typed / after augmentation; source_prompt: Eq. 4's t_src.
+        negatives: ``(stylize.negatives, the resolved negative prompts)`` once :func:`check_style` resolved
+            them, so the stylization does not resolve them again; None before.
     """
 
     guidance: Any
@@ -173,6 +175,7 @@ class Style:
     raw_prompt: str
     prompt: str
     source_prompt: str
+    negatives: Optional[tuple[str, list]] = None
 
 
 def build_style(cfg: Any, guidance: Any = None, perceptual: Any = None) -> Style:
@@ -205,7 +208,17 @@ def check_style(style: Style, negatives: str) -> None:
 
     with torch.no_grad():
         style.guidance.encode_text([style.prompt])
-    resolve_negatives(negatives, style.guidance, style.prompt)
+    style.negatives = (negatives, resolve_negatives(negatives, style.guidance, style.prompt))
+
+
+def negatives_of(style: Style, spec: str) -> list:
+    """The negative prompts ``spec`` (``stylize.negatives``) names for ``style``: as :func:`check_style` resolved
+    them when it did so for the same spec, else resolved now."""
+    from nerfart_plugin.guidance import resolve_negatives
+
+    if style.negatives is not None and style.negatives[0] == spec:
+        return style.negatives[1]
+    return resolve_negatives(spec, style.guidance, style.prompt)
 
 
 def stylize_settings(scene: SceneContext):
@@ -224,7 +237,6 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
                              out_dir: Optional[Path] = None):
     """The stylization LightningModule of ``scene.cfg`` starting from ``source_state`` (the reconstruction's
     renderer tensors, :func:`load_renderer_state`); ``style``: from :func:`build_style` by default."""
-    from nerfart_plugin.guidance import resolve_negatives
     from nerfart_plugin.systems.stylization import StylizationSystem
 
     c, sc = scene.cfg, stylize_settings(scene)
@@ -232,7 +244,7 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     views = scene.views(scene.scene.train_ids, sc.resolution)
     return StylizationSystem(sc, c.experiment, c.backbone, c.encoding, c.render, scene.setup, source_state, views,
                              style.guidance, style.perceptual, style.prompt, style.source_prompt,
-                             resolve_negatives(sc.negatives, style.guidance, style.prompt), seed=c.seed,
+                             negatives_of(style, sc.negatives), seed=c.seed,
                              out_dir=str(out_dir) if out_dir is not None else None, stamp=style.stamp,
                              raw_prompt=style.raw_prompt)
 

@@ -35,6 +35,7 @@ from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 
 log = logging.getLogger("nerfart_plugin")
 
+
 def validate_config(c: Any) -> dict:
     """Every setting checked before anything is loaded (:mod:`nerfart_plugin.schema`: types, ranges,
     choices, unknown keys), then what depends on the stage: multi-device only for the reconstruction,
@@ -143,7 +144,7 @@ class Pipeline:
     def stylize(self, stage: type[StylizeStage] = StylizeStage, name: str = "stylization") -> Path:
         """Stage 2 (a finished stylization is not redone); returns its ``final.ckpt``."""
         source, source_key = stylization_source(self._loaded(), self.recon)
-        if not self.cfg.source_checkpoint:
+        if not self.cfg.source_checkpoint and "reconstruction" not in self.results:  # not verified by this run yet
             self.recon.folder.set_aside_if_damaged()
         if not source.exists():
             raise NerfArtError(f"No reconstruction at {source} for this data + backbone + settings. Run "

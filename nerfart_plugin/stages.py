@@ -216,6 +216,7 @@ class StylizeStage(TrainingStage):
         name = f"{slug(style.raw_prompt)}-{c.backbone['name']}-{self.key}{style.stamp}"
         self.folder = RunFolder(scene.root / "stylizations" / name, "stylization")
         self.source_state: Optional[dict] = None
+        self.heldout_views: Optional[tuple[list[int], torch.Tensor, torch.Tensor]] = None  # (ids, source, stylized)
 
     def check_inputs(self) -> None:
         """The source renderer's tensors, read safely and checked to fit this run's model."""
@@ -276,6 +277,7 @@ class StylizeStage(TrainingStage):
         metrics["silhouette_iou"] = silhouette_iou(torch.stack([o["opacity"][..., 0] for o in src_out]),
                                                    torch.stack([o["opacity"][..., 0] for o in sty_out]))
         self.save_heldout(ids, src, sty)
+        self.heldout_views = (ids, src, sty)  # what a preview shows, without reading the PNGs back
         metrics["judge"] = judge_prompt(self.style.raw_prompt, src, sty, ids)
         metrics["evaluated_on"] = evaluation_views(scene)
         from nerfart_plugin.systems.base import to_device
@@ -366,9 +368,9 @@ class PreviewStage(StylizeStage):
 
         with self.clock.part("evaluation"):
             metrics = self.heldout_metrics(system)
-        ids = sorted(int(p.stem.split("_")[1]) for p in (self.folder.path / "heldout").glob("source_*.png"))
-        rows = [side_by_side(*(_read_png(self.folder.path / "heldout" / f"{n}_{i:04d}.png") for n in ("source", "stylized")),
-                             labels=("source", f"preview, {fit.steps} steps")) for i in ids]
+        _, src, sty = self.heldout_views
+        rows = [side_by_side(a.permute(1, 2, 0), b.permute(1, 2, 0), labels=("source", f"preview, {fit.steps} steps"))
+                for a, b in zip(src, sty)]
         save_image(image_grid(rows, ncols=1), self.folder.path / "preview.png")
         metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "steps": fit.steps,
                         "resolution": self.settings.resolution, "train_seconds_this_process": fit.seconds,
@@ -411,13 +413,6 @@ def log_preview(folder: Path, metrics: dict[str, Any]) -> None:
     else:
         log.info("preview of %r (judge: %s); see %s", metrics.get("prompt"), judge.get("skipped", "none"),
                  folder / "preview.png")
-
-
-def _read_png(path: Path) -> np.ndarray:
-    from PIL import Image
-
-    with Image.open(path) as im:
-        return np.asarray(im.convert("RGB"))
 
 
 def _read_json(path: Path) -> dict[str, Any]:
