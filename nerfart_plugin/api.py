@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional, Sequence, Union
+from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -159,8 +159,10 @@ class Run:
 
     def render_path(self, path: Union[str, RenderPath] = "orbit", frames: int = 120, resolution: Optional[int] = None,
                     channels: Sequence[str] = ("rgb",), path_frame: str = "world",
-                    progress: bool = True) -> dict[str, list[np.ndarray]]:
-        """Every camera of ``path`` (:meth:`camera_path`) -> channel -> list of [H,W,3] uint8 frames."""
+                    progress: bool = True, on_frame: Optional[Callable[[int, int], None]] = None
+                    ) -> dict[str, list[np.ndarray]]:
+        """Every camera of ``path`` (:meth:`camera_path`) -> channel -> list of [H,W,3] uint8 frames
+        (``on_frame(done, total)`` after each camera)."""
         from nerfart_plugin.rendering.frames import render_cameras
 
         rp = self.camera_path(path, frames, resolution, path_frame)
@@ -172,11 +174,12 @@ class Run:
         cams = self.cameras
         return render_cameras(self.renderer, rp, ndc=cams.ndc, near=float(cams.near.min()), far=float(cams.far.max()),
                               chunk=self.config.render.chunk, device=self.device, channels=channels, source=source,
-                              labels=("source", label), progress=progress)
+                              labels=("source", label), progress=progress, on_frame=on_frame)
 
     def write_render(self, out_dir: Union[str, Path], path: Union[str, RenderPath] = "orbit", frames: int = 120,
                      resolution: Optional[int] = None, channels: Sequence[str] = ("rgb",), fps: Optional[int] = None,
-                     png: bool = False, path_frame: str = "world") -> dict[str, Any]:
+                     png: bool = False, path_frame: str = "world",
+                     on_frame: Optional[Callable[[int, int], None]] = None) -> dict[str, Any]:
         """Render ``path`` and write ``<out_dir>/<channel><stamp>.mp4`` per channel (and, ``png``, the frames
         as ``<channel>/00000.png`` ...) plus ``camera_path.json`` (nerfstudio format, world frame) to render the
         same path again or edit it. Returns what was written."""
@@ -185,7 +188,7 @@ class Run:
         out = Path(out_dir)
         rp = self.camera_path(path, frames, resolution, path_frame)
         fps = int(fps or rp.fps or 24)
-        rendered = self.render_path(rp, channels=channels)
+        rendered = self.render_path(rp, channels=channels, on_frame=on_frame)
         files: dict[str, Any] = {"camera_path": str(write_camera_path(rp, self.cameras, out / "camera_path.json", fps))}
         for channel, images in rendered.items():
             name = f"{channel}{self.tag}{self.stamp}"
@@ -195,6 +198,12 @@ class Run:
                     save_image(img, out / name / f"{i:05d}.png")
         log.info("rendered %d frames of %s (%dx%d) -> %s", len(rp), rp.name, rp.width, rp.height, out)
         return {"dir": str(out), "frames": len(rp), "width": rp.width, "height": rp.height, "fps": fps, "files": files}
+
+    def render_folder(self, path: RenderPath) -> Path:
+        """Where ``stage=render`` writes ``path``: ``<run>/render/<path>-<F>f-<W>x<H><blend tag>``."""
+        from nerfart_plugin.runs import slug
+
+        return self.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}{self.tag}"
 
     # ------------------------------------------------------------------ geometry
     def mesh(self, resolution: int = 128, frame: str = "world", level: Optional[float] = None):

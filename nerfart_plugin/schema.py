@@ -289,6 +289,20 @@ class LoggerConfig(Section):
                                                              changes_results=False)
 
 
+class ViewerConfig(Section):
+    """``viewer``: the live web viewer on a training run (``python -m nerfart_plugin.viewer RUN`` views a finished
+    one). It only watches: none of these settings changes what is computed."""
+
+    live: bool = Setting(False, description="serve the viewer while the run trains (a URL is logged): the field "
+                         "from the browser's camera, pause / resume / stop-and-save", changes_results=False)
+    host: str = Setting("127.0.0.1", min_length=1, description="address to bind; 0.0.0.0 serves every network "
+                        "interface (anyone who can reach the machine can watch)", changes_results=False)
+    port: Int = Setting(8080, ge=0, le=65535, description="port (the next free one if taken; 0: any free port)",
+                        changes_results=False)
+    render_share: Float = Setting(0.1, gt=0.0, le=1.0, description="the most of the wall time the viewer's frames "
+                                  "may take while training (1: no cap)", changes_results=False)
+
+
 Precision = Literal["32-true", "32", 32, "16-mixed", "16", 16, "bf16-mixed", "bf16", "16-true", "bf16-true",
                     "64-true", "64", 64]
 Devices = Union[Literal["auto", -1], Annotated[Int, Field(ge=1, le=4096)],
@@ -406,6 +420,7 @@ class RunConfig(Section):
                               "change; outputs named -s<strength>)", changes_results=False)
     mix: MixConfig = Field(default_factory=MixConfig)
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
+    viewer: ViewerConfig = Field(default_factory=ViewerConfig)
     render: RenderConfig = Field(default_factory=RenderConfig)
     reconstruct: ReconstructConfig = Field(default_factory=ReconstructConfig)
     stylize: StylizeConfig = Field(default_factory=StylizeConfig)
@@ -425,7 +440,7 @@ class RunConfig(Section):
 SECTIONS: dict[str, type[Section]] = {
     "render": RenderConfig, "reconstruct": ReconstructConfig, "stylize": StylizeConfig, "export": ExportConfig,
     "trainer": TrainerConfig, "experiment": ExperimentConfig, "logger": LoggerConfig, "mix": MixConfig,
-    "preview": PreviewConfig,
+    "preview": PreviewConfig, "viewer": ViewerConfig,
 }
 
 

@@ -99,6 +99,18 @@ class TrainingStage:
     def check_inputs(self) -> None:
         """Read and check what the stage starts from (nothing by default)."""
 
+    def live_callbacks(self) -> list[Any]:
+        """The live viewer on the field being trained, when ``viewer.live`` (:mod:`nerfart_plugin.viewer.live`)."""
+        vc = self.scene.cfg.viewer
+        if not vc.live:
+            return []
+        from nerfart_plugin.data.camera_path import CaptureCameras
+        from nerfart_plugin.viewer.live import LiveViewer
+
+        cams = CaptureCameras.from_scene(self.scene.scene, self.scene.ndc)
+        return [LiveViewer(cams, host=vc.host, port=vc.port, render_share=vc.render_share,
+                           chunk=self.scene.cfg.render.chunk, folder=self.folder.path, title=self.folder.what)]
+
     def build_system(self) -> Any:  # pragma: no cover - abstract
         raise NotImplementedError
 
@@ -153,7 +165,7 @@ class ReconstructStage(TrainingStage):
                                        limit_val_batches=rc.val_views or 1.0)
                                   if rc.val_every > 0 else dict(limit_val_batches=0))  # val_every=0: no validation
         return fit_stage(system, self.folder, steps=rc.steps, device=self.scene.device, trainer_cfg=self.scene.cfg.trainer,
-                         checkpoint_every=rc.checkpoint_every, callbacks=[FiniteGradientGuard()],
+                         checkpoint_every=rc.checkpoint_every, callbacks=[FiniteGradientGuard(), *self.live_callbacks()],
                          val=self.scene.dm.val_dataloader() if rc.val_every > 0 else None,
                          logger_cfg=self.scene.cfg.logger, **val_kw)
 
@@ -228,7 +240,7 @@ class StylizeStage(TrainingStage):
     def fit(self, system: Any) -> FitResult:
         return fit_stage(system, self.folder, steps=self.settings.steps, device=self.scene.device,
                          trainer_cfg=self.scene.cfg.trainer, checkpoint_every=self.settings.checkpoint_every,
-                         logger_cfg=self.scene.cfg.logger, limit_val_batches=0)
+                         callbacks=self.live_callbacks(), logger_cfg=self.scene.cfg.logger, limit_val_batches=0)
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
@@ -500,8 +512,7 @@ class RenderStage:
         run = blended_run(self.cfg, self.run_dir)
         resolution = None if rc.resolution == "auto" else int(rc.resolution)
         path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
-        out = run.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}{run.tag}"
-        summary = run.write_render(out, path, channels=rc.channels, fps=rc.fps, png=rc.png)
+        summary = run.write_render(run.render_folder(path), path, channels=rc.channels, fps=rc.fps, png=rc.png)
         return StageResult(run.checkpoint, summary)
 
 

@@ -18,7 +18,7 @@ Pixels with opacity < 0.5 show the background colour (white) in depth / normal.
 from __future__ import annotations
 
 import logging
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -33,13 +33,15 @@ CHANNELS = ("rgb", "depth", "normal", "opacity", "side")
 @torch.no_grad()
 def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: float, chunk: int,
                    device: torch.device, channels: Sequence[str] = ("rgb",), source: Any = None,
-                   labels: tuple[str, str] = ("source", "stylized"), progress: bool = True) -> dict[str, list[np.ndarray]]:
+                   labels: tuple[str, str] = ("source", "stylized"), progress: bool = True,
+                   on_frame: Optional[Callable[[int, int], None]] = None) -> dict[str, list[np.ndarray]]:
     """Render every camera of ``path`` (:class:`~nerfart_plugin.data.render_path.RenderPath`) without grad.
 
     Args:
         renderer: the trained renderer (eval mode); source: the source renderer, for ``side``.
         ndc: NDC rays (forward-facing captures); near / far: ray bounds (normalized units).
         chunk: rays per no-grad chunk (memory only).
+        on_frame: called with (frames done, frames in all) after each camera (a progress display).
 
     Returns:
         channel -> list of [H,W,3] uint8 frames (``side``: [H, 2W + gap, 3]).
@@ -75,6 +77,8 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
             raw["normal"].append(normal_image(n.cpu().numpy(), opacity))
         depths.append(out["depth"][..., 0].cpu().numpy())
         opacities.append(opacity)
+        if on_frame is not None:
+            on_frame(i + 1, len(path))
     if "depth" in channels:
         raw["depth"] = colorize_depth(depths, opacities)
     return raw

@@ -1,0 +1,235 @@
+"""The live web viewer: what a frame costs, what the moving frame adapts to, and what watching costs training.
+
+1. Frames of finished runs, rendered as a browser tab's job renders them (the viewer's ``RunField``;
+   median of ``--repeats``): the README's main-job stylization of the shipped head (256x256) and a
+   ``preset=draft`` reconstruction of the fangzhou_nature selfie (270x480 frames; coarse 32^3 occupancy
+   grid, 800 steps). Per run: seconds per frame at 64, 128, 256 px and the capture's size, and the moving
+   frame the schedule picks from the measured speed (side and seconds). Target: a 256 px frame of the
+   head <= 0.5 s.
+2. What watching costs training: the same head reconstruction (``--steps`` steps) alone and with
+   ``viewer.live=true`` and a headless Chromium connected whose camera is dragged every 2 s, alternated
+   A B A B; the fit seconds from each run's ``metrics.json``. Target: <= 15% slower. The browser's own
+   software WebGL drawing runs on the same two cores and is part of what is measured.
+3. ``docs/images/viewer.png``: the main-job run in the viewer, taken by the test suite's headless browser
+   (:mod:`nerfart_plugin.viewer.browser`).
+
+    python benchmarks/main_job.py --prompts "brain coral"       # first: the run to view
+    python benchmarks/viewer.py --run outputs/benchmarks/main_job/stylizations/<brain coral run>
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks import common  # noqa: E402
+
+log = logging.getLogger("bench.viewer")
+NAME = "viewer"
+SIDES = (64, 128, 256)
+TARGET_FRAME_S, TARGET_SLOWDOWN = 0.5, 0.15
+DRAFT_ARGS = ["data=selfie", "preset=draft", "stage=reconstruct", "export.enabled=false"]
+SCREENSHOT = ROOT / "docs" / "images" / "viewer.png"
+
+
+# --------------------------------------------------------------------------- 1. frames
+def frame_costs(folder: Path, repeats: int) -> dict[str, Any]:
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.viewer.cameras import capture_camera
+    from nerfart_plugin.viewer.fields import RunField, ViewSettings
+    from nerfart_plugin.viewer.schedule import FrameSchedule
+
+    run = open_run(folder, device="cpu")
+    field = RunField(run)
+    cams = run.cameras
+    cam = capture_camera(cams, 0)
+    native = max(cams.width, cams.height)
+    out: dict[str, Any] = {"run": str(folder), "kind": run.kind, "size": [cams.height, cams.width], "frames": {}}
+    schedule = FrameSchedule(refine_sides=(min(256, native), min(native, 512)))
+    for side in sorted({*SIDES, native}):
+        field.render(cam, side, ViewSettings())  # warm-up
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            img = field.render(cam, side, ViewSettings())
+            times.append(time.perf_counter() - t0)
+            schedule.rendered(img.shape[0] * img.shape[1], times[-1])
+        out["frames"][str(side)] = {"seconds": statistics.median(times), "hw": list(img.shape[:2])}
+    schedule.restart(cam.aspect)
+    moving = schedule.moving_side(cam.aspect)
+    t0 = time.perf_counter()
+    field.render(cam, moving, ViewSettings())
+    out["moving"] = {"side": moving, "seconds": time.perf_counter() - t0, "rays_per_second": schedule.rays_per_second}
+    log.info("%s: %s", folder.name, out)
+    return out
+
+
+def draft_run(root: Path) -> Path:
+    """The preset=draft reconstruction of fangzhou_nature (trained once into ``root``, then reused)."""
+    data = common.shared_data() / "fangzhou_nature"
+    args = [sys.executable, "-m", "nerfart_plugin", *DRAFT_ARGS, f"data.path={data}", f"output_root={root}",
+            f"hydra.run.dir={root}/hydra"]
+    proc = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, check=False)
+    if proc.returncode != 0:
+        raise SystemExit(f"the draft reconstruction failed:\n{(proc.stdout + proc.stderr)[-3000:]}")
+    return Path(json.loads((root / "hydra" / "result.json").read_text())["reconstruction"]["dir"])
+
+
+# --------------------------------------------------------------------------- 2. training slowdown
+def timed_reconstruction(root: Path, steps: int, live: bool) -> dict[str, Any]:
+    """One head reconstruction into a fresh ``root``; with ``live``, a headless browser watches it."""
+    if root.exists():
+        shutil.rmtree(root)
+    args = [sys.executable, "-m", "nerfart_plugin", "stage=reconstruct", f"reconstruct.steps={steps}",
+            "export.enabled=false", f"output_root={root}", f"hydra.run.dir={root}/hydra"]
+    if live:
+        args += ["viewer.live=true", "viewer.port=0"]
+    proc = subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    url: dict[str, str] = {}
+
+    def read() -> None:
+        for line in proc.stdout:  # type: ignore[union-attr]
+            lines.append(line)
+            m = re.search(r"live viewer: open (http://\S+)", line)
+            if m:
+                url["url"] = m.group(1)
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    drags = 0
+    if live:
+        from nerfart_plugin.viewer.browser import BrowserPage, wait_for
+
+        if not wait_for(lambda: "url" in url or proc.poll() is not None, 300):
+            raise SystemExit("the live viewer did not start")
+        with BrowserPage(url["url"], size=(1000, 700)) as page:
+            while proc.poll() is None:
+                time.sleep(2.0)
+                if proc.poll() is None:
+                    try:
+                        page.drag(40 if drags % 2 == 0 else -40, 0)
+                        drags += 1
+                    except Exception:  # noqa: BLE001 - the run ended (and its server) during a drag
+                        break
+    proc.wait()
+    reader.join(timeout=10)
+    if proc.returncode != 0:
+        raise SystemExit(f"the reconstruction failed:\n{''.join(lines)[-3000:]}")
+    result = json.loads((root / "hydra" / "result.json").read_text())
+    metrics = json.loads((Path(result["reconstruction"]["dir"]) / "metrics.json").read_text())
+    return {"live": live, "fit_seconds": metrics["stage_seconds"]["fit"], "steps": metrics["steps"], "drags": drags}
+
+
+def slowdown(root: Path, steps: int, rounds: int) -> list[dict[str, Any]]:
+    runs = []
+    for i in range(rounds):
+        for live in (False, True):
+            r = timed_reconstruction(root / f"{'live' if live else 'alone'}{i}", steps, live)
+            log.info("%s", r)
+            runs.append(r)
+    return runs
+
+
+# --------------------------------------------------------------------------- 3. screenshot
+def screenshot(folder: Path, out: Path) -> str:
+    from nerfart_plugin.viewer import open_viewer
+    from nerfart_plugin.viewer.browser import BrowserPage, wait_for
+
+    viewer = open_viewer(folder, port=0, device="cpu")
+    try:
+        with BrowserPage(viewer.url, size=(1200, 760)) as page:
+            wait_for(lambda: viewer.tabs and next(iter(viewer.tabs.values())).schedule.finished, 60)
+            wait_for(lambda: viewer.photos_loading is None or not viewer.photos_loading.is_alive(), 60)
+            page.page.keyboard.press("Escape")
+            time.sleep(3.0)
+            out.parent.mkdir(parents=True, exist_ok=True)
+            page.screenshot(out)
+    finally:
+        viewer.stop()
+    return str(out.relative_to(ROOT))
+
+
+# --------------------------------------------------------------------------- report
+def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
+    body = ["Frames as a browser tab's render job makes them (median seconds; CPU, 2 threads):", ""]
+    rows = []
+    for name, r in raw["frames"].items():
+        cells = [name, f"{r['size'][1]}x{r['size'][0]}"]
+        for side in SIDES:
+            f = r["frames"].get(str(side))
+            cells.append(common.fmt(f["seconds"] if f else None, ".3f"))
+        native = str(max(r["size"]))
+        cells.append(common.fmt(r["frames"][native]["seconds"], ".3f"))
+        cells.append(f"{r['moving']['side']} px, {r['moving']['seconds']:.3f} s")
+        rows.append(cells)
+    body += common.md_table(["run", "capture", *[f"{s} px" for s in SIDES], "capture size", "moving frame"], rows)
+    alone = [r["fit_seconds"] for r in raw["slowdown"] if not r["live"]]
+    live = [r["fit_seconds"] for r in raw["slowdown"] if r["live"]]
+    ratio = statistics.mean(live) / statistics.mean(alone) - 1.0 if alone and live else None
+    body += ["", f"Training with the viewer watching (head reconstruction, {raw['steps']} steps, alternated):", ""]
+    body += common.md_table(["run", "viewer", "fit seconds", "camera drags"],
+                            [[i + 1, "live + browser" if r["live"] else "none", f"{r['fit_seconds']:.1f}",
+                              r["drags"]] for i, r in enumerate(raw["slowdown"])])
+    head = raw["frames"].get("head", {}).get("frames", {}).get("256", {}).get("seconds")
+    body += ["", "**Targets**", "",
+             f"- a 256 px frame of the shipped head <= {TARGET_FRAME_S} s: "
+             f"**{'MET' if head is not None and head <= TARGET_FRAME_S else 'NOT MET'}** ({common.fmt(head, '.3f')} s)",
+             f"- training slowdown with a connected browser <= {TARGET_SLOWDOWN:.0%}: "
+             f"**{'MET' if ratio is not None and ratio <= TARGET_SLOWDOWN else 'NOT MET'}** "
+             f"({'–' if ratio is None else f'{ratio:+.1%}'})"]
+    if raw.get("screenshot"):
+        body += ["", f"Screenshot: `{raw['screenshot']}`."]
+    body += ["", *raw.get("notes", [])]
+    return common.section(NAME, "The live web viewer", cmd, info, body, quick)
+
+
+def main(argv: Optional[list[str]] = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", type=Path, help="the main job's stylization run folder (benchmarks/main_job.py)")
+    p.add_argument("--draft-run", type=Path, default=None, help="a preset=draft fangzhou_nature reconstruction "
+                   "(default: trained into --out-root)")
+    p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "viewer")
+    p.add_argument("--steps", type=int, default=600, help="reconstruction steps of each slowdown run")
+    p.add_argument("--rounds", type=int, default=2, help="alternated rounds (alone, live)")
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--no-screenshot", action="store_true")
+    p.add_argument("--note", nargs="*", default=[])
+    common.add_raw_args(p)
+    common.add_common_args(p)
+    args = p.parse_args(argv)
+    info = common.start_logging(log)
+
+    def measure() -> dict[str, Any]:
+        if args.run is None:
+            raise SystemExit("--run: give the main job's stylization folder (run benchmarks/main_job.py first)")
+        steps = 30 if args.quick else args.steps
+        draft = args.draft_run or draft_run(args.out_root / "draft")
+        raw = {"frames": {"head": frame_costs(args.run, 1 if args.quick else args.repeats),
+                          "fangzhou_nature draft": frame_costs(draft, 1 if args.quick else args.repeats)},
+               "steps": steps, "slowdown": slowdown(args.out_root / "slowdown", steps, 1 if args.quick else args.rounds)}
+        if not args.no_screenshot and not args.quick:
+            raw["screenshot"] = screenshot(args.run, SCREENSHOT)
+        return raw
+
+    raw = common.raw_results(args, NAME, measure)
+    raw["notes"] = args.note or raw.get("notes", [])
+    common.finish(args, NAME, report(raw, info, common.command("viewer.py", argv or sys.argv[1:]), args.quick))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
