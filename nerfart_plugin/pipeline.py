@@ -19,7 +19,8 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Any, Optional
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
 
 import lightning as L
 import torch
@@ -51,13 +52,14 @@ def validate_config(c: Any) -> dict:
 def check_stage(c: RunConfig) -> None:
     """The checks that depend on the stage (see :func:`validate_config`)."""
     tc = c.trainer
-    if (tc.strategy != "auto" or tc.num_nodes != 1 or tc.devices != 1) and c.stage != "reconstruct":
+    plan = PLANS[c.stage]
+    if (tc.strategy != "auto" or tc.num_nodes != 1 or tc.devices != 1) and not plan.multi_device:
         raise ConfigError("Multi-device training (trainer.strategy/devices/num_nodes) is supported for "
                           "stage=reconstruct only: the stylization stage optimizes one view per step with several "
                           "backward passes (Section 4.4) on one device. Run stage=reconstruct with DDP, then "
                           "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1 "
                           "source_checkpoint=<the DDP run>/final.ckpt.")
-    if c.stage in ("stylize", "all", "preview"):
+    if plan.needs_prompt:
         from nerfart_plugin.guidance import validate_prompt
 
         if c.prompt is None:
@@ -198,30 +200,70 @@ class Pipeline:
                                  "(finished stages are reused, a stage in progress resumes from its last.ckpt)") from None
 
     def _run(self) -> dict[str, Any]:
-        stage = self.cfg.stage
+        plan = PLANS[self.cfg.stage]
         L.seed_everything(self.cfg.seed, workers=True, verbose=False)
-        if stage == "render" and (self.cfg.render.run or self.cfg.mix.runs):  # given runs: no data, no guidance
-            self.render()
-            return self.results
-        if stage == "export" and self.cfg.mix.runs:
-            self.results["export"] = ExportStage(self.cfg, None).run().summary
-            return self.results
-        if stage in ("stylize", "all", "preview") or (stage == "render" and self.cfg.prompt is not None):
+        if plan.guidance(self.cfg):
             self.prepare_guidance()
-        self.load_data()
-        if stage == "render":
-            self.render()
-            return self.results
-        if stage == "export":
-            self.export()
-            return self.results
-        if stage in ("reconstruct", "all", "preview") and not self.cfg.source_checkpoint:
-            self.reconstruct()
-        if stage in ("stylize", "all"):
-            self.stylize()
-        if stage == "preview":
-            self.preview()
+        if plan.data(self.cfg):
+            self.load_data()
+        for step in plan.steps:
+            step(self)
         return self.results
+
+    # ------------------------------------------------------------------ the steps of the plans
+    def reconstruct_unless_given(self) -> None:
+        """Stage 1, unless ``source_checkpoint`` names the reconstruction to start from."""
+        if not self.cfg.source_checkpoint:
+            self.reconstruct()
+
+    def export_meshes(self) -> None:
+        """``stage=export``: of ``mix.runs`` when given (no data needed), else :meth:`export`."""
+        if self.cfg.mix.runs:
+            self.results["export"] = ExportStage(self.cfg, None).run().summary
+        else:
+            self.export()
+
+
+def _always(c: RunConfig) -> bool:
+    return True
+
+
+def _never(c: RunConfig) -> bool:
+    return False
+
+
+def _runs_given(c: RunConfig) -> bool:
+    return bool(c.render.run or c.mix.runs)
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """What one value of ``stage=`` does: whether the guide (prompt, negatives) and the capture are loaded first
+    (functions of the config), then the pipeline's steps in order.
+
+    Attributes:
+        needs_prompt: the stage stylizes, so ``prompt`` is required (checked before anything loads).
+        multi_device: the stage may train on several devices (``trainer.strategy`` / ``devices`` / ``num_nodes``).
+    """
+
+    steps: tuple[Callable[["Pipeline"], Any], ...]
+    guidance: Callable[[RunConfig], bool] = _never
+    data: Callable[[RunConfig], bool] = _always
+    needs_prompt: bool = False
+    multi_device: bool = False
+
+
+#: ``stage=`` -> its plan (the schema's ``stage`` choices, one entry each)
+PLANS: dict[str, StagePlan] = {
+    "reconstruct": StagePlan((Pipeline.reconstruct_unless_given,), multi_device=True),
+    "stylize": StagePlan((Pipeline.stylize,), guidance=_always, needs_prompt=True),
+    "all": StagePlan((Pipeline.reconstruct_unless_given, Pipeline.stylize), guidance=_always, needs_prompt=True),
+    "preview": StagePlan((Pipeline.reconstruct_unless_given, Pipeline.preview), guidance=_always, needs_prompt=True),
+    # a given run (render.run, mix.runs) needs neither data nor guide; else this config's run, found by its key
+    "render": StagePlan((Pipeline.render,), guidance=lambda c: c.prompt is not None and not _runs_given(c),
+                        data=lambda c: not _runs_given(c)),
+    "export": StagePlan((Pipeline.export_meshes,), data=lambda c: not c.mix.runs),
+}
 
 
 def run(cfg: DictConfig | dict, output_dir: Optional[Path] = None) -> dict[str, Any]:

@@ -465,3 +465,15 @@ def test_explicit_source_checkpoint_key_covers_its_content_and_the_render_settin
     assert key("render.background_color=[0,0,0]") != base and key(content="scene-b") != base
     ckpt.write_bytes(b"two")
     assert key() != base
+
+
+def test_every_stage_has_one_plan():
+    """stage= is dispatched through one table (pipeline.PLANS): every choice of the schema has its plan."""
+    from typing import get_args
+
+    from nerfart_plugin.pipeline import PLANS
+    from nerfart_plugin.schema import RunConfig
+
+    assert sorted(PLANS) == sorted(get_args(RunConfig.model_fields["stage"].annotation))
+    assert [p for p, plan in PLANS.items() if plan.needs_prompt] == ["stylize", "all", "preview"]
+    assert [p for p, plan in PLANS.items() if plan.multi_device] == ["reconstruct"]

@@ -17,7 +17,7 @@ from nerfart_plugin.data.render_path import read_camera_path
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.viewer.cameras import (ViewCamera, capture_camera, from_viser, matrix_to_wxyz, render_path,
                                            to_viser, wxyz_to_matrix)
-from nerfart_plugin.viewer.fields import ViewSettings, split_frame
+from nerfart_plugin.viewer.fields import LiveField, ViewSettings, split_frame, timed
 from nerfart_plugin.viewer.jobs import TabRenderer
 from nerfart_plugin.viewer.keyframes import catmull_rom, interpolate, save_path
 from nerfart_plugin.viewer.live import LiveViewer, TrainingControl, readouts
@@ -135,6 +135,9 @@ class FakeField:
         self.cameras, self.lock, self.version, self.delay = cams, threading.Lock(), 0, delay
         self.sizes: list[int] = []
 
+    def timed_render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> tuple[np.ndarray, float]:
+        return timed(self.render, camera, long_side, settings)
+
     def render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> np.ndarray:
         self.sizes.append(long_side)  # when it starts
         time.sleep(self.delay)
@@ -218,8 +221,18 @@ def test_pause_holds_the_trainer_resume_and_stop_release_it():
     assert "other" not in text
 
 
-def test_the_live_callback_holds_the_training_lock_for_each_step_and_stops_through_the_checkpoint_path():
+def test_a_live_frame_is_rendered_on_the_training_thread_between_steps_and_stop_goes_through_the_checkpoint(
+        monkeypatch):
     from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt
+    from nerfart_plugin.viewer import fields
+
+    threads = []
+
+    def fake_frame(renderer, cams, camera, long_side, channel, chunk, device):
+        threads.append(threading.current_thread())
+        return np.zeros((4, 4, 3), np.uint8)
+
+    monkeypatch.setattr(fields, "render_frame", fake_frame)
 
     class Trainer:
         global_rank, global_step, should_stop, callback_metrics = 0, 5, False, {}
@@ -227,23 +240,38 @@ def test_the_live_callback_holds_the_training_lock_for_each_step_and_stops_throu
         def __init__(self, callbacks):
             self.callbacks = callbacks
 
+    system = type("System", (), {"device": torch.device("cpu"), "renderer": None})()
+    field = LiveField(system, capture(), render_share=0.1, chunk=64)
     stop = GracefulInterrupt(AtomicCheckpoint(Path("."), 10))
     live = LiveViewer(capture())
+    live.viewer = type("V", (), {"field": field, "panels": {"training": {"readouts": type("R", (), {"content": ""})()}},
+                                 "stop": lambda self: None})()
     trainer = Trainer([stop, live])
-    live.on_train_batch_start(trainer, None)
     got = []
-    t = threading.Thread(target=lambda: got.append(live.control.lock.acquire(timeout=0.3)), daemon=True)
-    t.start()
-    t.join()
-    assert got == [False]  # a frame waits for the step
-    live.control.stop()
-    live.viewer = type("V", (), {"field": type("F", (), {"version": 0})(), "panels": {"training": {
-        "readouts": type("R", (), {"content": ""})()}}, "stop": lambda self: None})()
+    tab = threading.Thread(target=lambda: got.append(field.timed_render(capture_camera(capture(), 0), 16,
+                                                                        ViewSettings())), daemon=True)
+    tab.start()
+    time.sleep(0.3)
+    assert not got  # a frame waits for the end of the step
     live.on_train_batch_end(trainer, None)
-    assert live.control.lock.acquire(timeout=0.3)  # released after the step
-    live.control.lock.release()
-    assert stop.requested and live.viewer.field.version == 1
+    tab.join(timeout=5)
+    assert got and got[0][0].shape == (4, 4, 3) and threads == [threading.current_thread()]
+    assert field.version == 1
+    live.control.pause()
+    tab = threading.Thread(target=lambda: got.append(field.timed_render(capture_camera(capture(), 1), 16,
+                                                                        ViewSettings())), daemon=True)
+    tab.start()
+    waiter = threading.Thread(target=live.on_train_batch_start, args=(trainer, None), daemon=True)
+    waiter.start()  # the training thread, paused: it still renders the tabs' frames
+    tab.join(timeout=5)
+    assert len(got) == 2 and waiter.is_alive()
+    live.control.stop()
+    waiter.join(timeout=5)
+    live.on_train_batch_end(trainer, None)
+    assert stop.requested  # the Ctrl-C path: checkpoint after this step, then RunInterrupted
     live.close()
+    with pytest.raises(RuntimeError, match="training has ended"):
+        field.timed_render(capture_camera(capture(), 0), 16, ViewSettings())
 
 
 def test_split_shows_the_source_left_and_the_stylization_right():

@@ -1,16 +1,23 @@
 """What the viewer renders: a finished run (with its source, the strength dial and mixes) or the field being
-trained. Both answer :meth:`render` for one camera and hold a ``lock`` that a frame is rendered under (a
-finished run: one frame at a time across tabs; a live run: the training lock, so a frame falls between two
-steps). ``version`` grows whenever the field itself changes (a training step), so open tabs render again.
+trained. Both answer :meth:`timed_render` (a frame and the seconds it took) for one camera, from any tab's
+thread, and hold a ``lock`` that serializes the tabs' frames. ``version`` grows whenever the field itself
+changes (a training step), so open tabs render again.
+
+All of a field's torch work runs on ONE thread: a finished run's own render thread, a live run's training
+thread (between two steps). Each thread that calls torch's CPU kernels brings its own pool of worker
+threads, and two pools on the same cores spin against each other; one thread keeps one pool.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -79,6 +86,18 @@ class RunField:
         self._opened: dict[Path, Any] = {}
         self._source: Any = None
         self._blend: tuple[tuple[float, ...], Any] = ((1.0,) + (0.0,) * len(self.siblings), run.renderer)
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewer-render")
+
+    def timed_render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> tuple[np.ndarray, float]:
+        """:meth:`render` on the field's render thread; the frame and its seconds."""
+        return self.call(timed, self.render, camera, long_side, settings)
+
+    def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """``fn(*args, **kwargs)`` on the field's render thread (any torch work on this run: a video too)."""
+        return self._worker.submit(fn, *args, **kwargs).result()
+
+    def close(self) -> None:
+        self._worker.shutdown(wait=False, cancel_futures=True)
 
     @property
     def cameras(self) -> CaptureCameras:
@@ -138,6 +157,13 @@ class RunField:
         return render_frame(self.renderer(settings), self.cameras, camera, long_side, settings.channel, chunk, dev)
 
 
+def timed(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float]:
+    """``fn(*args)`` and the seconds it took."""
+    t0 = time.perf_counter()
+    out = fn(*args)
+    return out, time.perf_counter() - t0
+
+
 def sibling_runs(run: Any) -> list[Path]:
     """The other finished stylizations beside ``run`` (its parent folder) that name the same source
     checkpoint: the runs the viewer offers to mix with it (:func:`nerfart_plugin.api.mix` checks content)."""
@@ -159,15 +185,34 @@ def sibling_runs(run: Any) -> list[Path]:
     return out
 
 
-class LiveField:
-    """The field a training run is fitting (its system's renderer), rendered between steps under the training
-    lock; ``render_share`` caps the share of wall time its frames may take (the viewer waits between frames)."""
+class _Request:
+    """One frame asked of the training thread by a tab's thread."""
 
-    def __init__(self, system: Any, cameras: CaptureCameras, lock: threading.RLock, render_share: float,
-                 chunk: int) -> None:
-        self.system, self._cameras, self.lock = system, cameras, lock
+    def __init__(self, fn: Callable[[], tuple[np.ndarray, float]]) -> None:
+        self.fn, self.done = fn, threading.Event()
+        self.value: Optional[tuple[np.ndarray, float]] = None
+        self.error: Optional[BaseException] = None
+
+    def run(self) -> None:
+        try:
+            self.value = self.fn()
+        except BaseException as exc:  # noqa: BLE001 - handed to the tab's thread
+            self.error = exc
+        self.done.set()
+
+
+class LiveField:
+    """The field a training run is fitting (its system's renderer). A tab's frame is a request that the training
+    thread renders between two steps (:meth:`serve`, called by :class:`~nerfart_plugin.viewer.live.LiveViewer`);
+    ``render_share`` caps the share of wall time frames may take (the tab waits between frames)."""
+
+    def __init__(self, system: Any, cameras: CaptureCameras, render_share: float, chunk: int) -> None:
+        self.system, self._cameras = system, cameras
         self.render_share, self.chunk = render_share, chunk
+        self.lock = threading.Lock()
         self.version = 0
+        self._requests: "queue.Queue[_Request]" = queue.Queue()
+        self._closed = threading.Event()
 
     @property
     def cameras(self) -> CaptureCameras:
@@ -176,6 +221,34 @@ class LiveField:
     @property
     def is_stylization(self) -> bool:
         return getattr(self.system, "source", None) is not None
+
+    def timed_render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> tuple[np.ndarray, float]:
+        """Ask the training thread for a frame and wait for it (RuntimeError once the training has ended)."""
+        if self._closed.is_set():
+            raise RuntimeError("the training has ended")
+        request = _Request(lambda: timed(self.render, camera, long_side, settings))
+        self._requests.put(request)
+        while not request.done.wait(0.1):
+            if self._closed.is_set():
+                raise RuntimeError("the training has ended")
+        if request.error is not None:
+            raise request.error
+        assert request.value is not None
+        return request.value
+
+    def serve(self) -> int:
+        """Render the frames the tabs asked for (on the calling thread: the training's); how many."""
+        n = 0
+        while True:
+            try:
+                request = self._requests.get_nowait()
+            except queue.Empty:
+                return n
+            request.run()
+            n += 1
+
+    def close(self) -> None:
+        self._closed.set()
 
     def render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> np.ndarray:
         dev = self.system.device

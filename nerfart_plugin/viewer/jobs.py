@@ -112,9 +112,7 @@ class TabRenderer:
 
     def _render(self, camera: ViewCamera, side: int, settings: ViewSettings) -> tuple[np.ndarray, float]:
         with self.field.lock:
-            t0 = time.perf_counter()
-            frame = self.field.render(camera, side, settings)
-            return frame, time.perf_counter() - t0
+            return self.field.timed_render(camera, side, settings)
 
     def _send(self, frame: np.ndarray, seconds: float) -> None:
         self.last_frame, self.last_seconds = frame, seconds

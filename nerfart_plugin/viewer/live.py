@@ -1,10 +1,10 @@
 """Watch a run train: ``viewer.live=true`` on a training command starts the viewer on the field being fitted.
 
-:class:`TrainingControl` is what the viewer and the trainer share: the training lock (held by the trainer
-for each step, so a frame is rendered between two steps), pause / resume, and stop-and-save (the same
+:class:`TrainingControl` is what the viewer and the trainer share: pause / resume, and stop-and-save (the same
 path as Ctrl-C: ``last.ckpt`` written after the step, the run resumes where it stopped when the command
-is run again). :class:`LiveViewer` is the Lightning callback that holds the lock around each step, serves
-the viewer while the fit runs and shows the logged readouts (loss, PSNR, seconds per step).
+is run again). :class:`LiveViewer` is the Lightning callback that serves the viewer while the fit runs, renders
+the frames the tabs ask for between two steps, on the training thread, and shows the logged readouts
+(loss, PSNR, seconds per step).
 Frames take at most ``viewer.render_share`` of the wall time (the tab waits between frames), which bounds
 what watching costs the training.
 """
@@ -15,7 +15,7 @@ import logging
 import threading
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import lightning as L
 
@@ -28,8 +28,8 @@ READOUTS = ("train/loss", "train/psnr", "train/loss_dir", "step_s", "rays_s")
 class TrainingControl:
     """Pause, resume and stop, shared by the viewer's buttons and the trainer (thread-safe)."""
 
+
     def __init__(self) -> None:
-        self.lock = threading.RLock()
         self._running = threading.Event()
         self._running.set()
         self.stop_requested = False
@@ -49,9 +49,10 @@ class TrainingControl:
         self.stop_requested = True
         self._running.set()
 
-    def wait_while_paused(self) -> None:
-        while not self._running.wait(timeout=0.5):
-            pass
+    def wait_while_paused(self, serve: Callable[[], Any] = lambda: None) -> None:
+        """Return when not paused; meanwhile call ``serve`` (the viewer's frames) every 50 ms."""
+        while not self._running.wait(timeout=0.05):
+            serve()
 
 
 def readouts(metrics: dict[str, Any], step: int, paused: bool, stop: bool) -> str:
@@ -81,7 +82,6 @@ class LiveViewer(L.Callback):
         self.render_share, self.chunk, self.folder, self.title = render_share, chunk, folder, title
         self.control = TrainingControl()
         self.viewer: Any = None
-        self._held = False
         self._last_readout = 0.0
 
     # ---- Lightning hooks
@@ -93,15 +93,14 @@ class LiveViewer(L.Callback):
                  self.viewer.url)
 
     def on_train_batch_start(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
-        self.control.wait_while_paused()
-        self.control.lock.acquire()
-        self._held = True
+        if self.viewer is not None:
+            self.control.wait_while_paused(self.viewer.field.serve)
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
-        self._release()
         if self.viewer is None:
             return
         self.viewer.field.version += 1
+        self.viewer.field.serve()  # the frames the tabs asked for, between two steps
         if self.control.stop_requested:
             self._request_stop(trainer)
         now = time.perf_counter()
@@ -123,7 +122,7 @@ class LiveViewer(L.Callback):
         from nerfart_plugin.viewer.path_editor import PathEditor
         from nerfart_plugin.viewer.server import Viewer
 
-        field = LiveField(system, self.cameras, self.control.lock, self.render_share, self.chunk)
+        field = LiveField(system, self.cameras, self.render_share, self.chunk)
         viewer = Viewer(field, host=self.host, port=self.port,
                         writable=None if self.folder is None else Path(self.folder) / "render",
                         title=f"nerfart_plugin: {self.title}")
@@ -144,14 +143,9 @@ class LiveViewer(L.Callback):
         else:
             trainer.should_stop = True
 
-    def _release(self) -> None:
-        if self._held:
-            self._held = False
-            self.control.lock.release()
-
     def close(self) -> None:
-        self._release()
         if self.viewer is not None:
+            self.viewer.field.close()
             self.viewer.stop()
             self.viewer = None
 

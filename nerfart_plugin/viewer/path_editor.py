@@ -118,8 +118,9 @@ class PathEditor:
         def on_frame(done: int, total: int) -> None:
             self.progress.value = 100.0 * done / max(total, 1)
 
-        with self.viewer.field.lock:
-            self.rendered = self.run.write_render(out, rp, fps=int(self.fps.value), on_frame=on_frame)
+        with self.viewer.field.lock:  # on the run's render thread, between two tabs' frames
+            self.rendered = self.viewer.field.call(self.run.write_render, out, rp, fps=int(self.fps.value),
+                                                   on_frame=on_frame)
         self.status.content = f"rendered `{self.rendered['files']['rgb']}`"
         return self.rendered
 

@@ -156,4 +156,6 @@ class Viewer:
             tabs, self.tabs = list(self.tabs.values()), {}
         for tab in tabs:
             tab.stop()
+        if hasattr(self.field, "close"):
+            self.field.close()
         self.server.stop()
