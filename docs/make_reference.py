@@ -1,6 +1,7 @@
 """Write ``docs/reference/settings.md`` from the typed config (``nerfart_plugin.schema``), the one source of
-every setting, its default and its meaning: ``python docs/make_reference.py``. ``tests/test_docs.py`` fails
-when the committed page is not what this script writes."""
+every setting, its default and its meaning, and ``docs/reference/errors.md`` from the error classes
+(``nerfart_plugin.errors``): ``python docs/make_reference.py``. ``tests/test_docs.py`` fails when a committed
+page is not what this script writes."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGE = ROOT / "docs" / "reference" / "settings.md"
+ERRORS_PAGE = ROOT / "docs" / "reference" / "errors.md"
 
 
 def settings_page() -> str:
@@ -34,8 +36,25 @@ def settings_page() -> str:
     return "\n".join(lines) + "\n"
 
 
+def errors_page() -> str:
+    from nerfart_plugin.errors import CATALOGUE
+
+    lines = ["# Error catalogue", "",
+             "Every error the package raises on purpose, generated from `nerfart_plugin/errors.py` "
+             "(`python docs/make_reference.py` rewrites this page). `python -m nerfart_plugin` prints the message "
+             "(it names the file or setting and the fix) and exits with the code below, never with a traceback; "
+             "from Python they are exceptions of these classes (all subclasses of `NerfArtError`)."]
+    for cls in CATALOGUE:
+        doc = " ".join((cls.__doc__ or "").split())
+        lines += ["", f"## `{cls.__name__}`", "", f"{doc} Exit code {cls.exit_code}.", "",
+                  "| typical cause | what to do |", "|---|---|"]
+        lines += [f"| {cause} | {fix} |" for cause, fix in cls.causes]
+    return "\n".join(lines) + "\n"
+
+
 if __name__ == "__main__":
     sys.path.insert(0, str(ROOT))
     PAGE.parent.mkdir(parents=True, exist_ok=True)
     PAGE.write_text(settings_page())
-    print(f"wrote {PAGE}")
+    ERRORS_PAGE.write_text(errors_page())
+    print(f"wrote {PAGE} and {ERRORS_PAGE}")

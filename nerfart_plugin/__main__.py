@@ -52,7 +52,7 @@ def _app(cfg: DictConfig) -> float | None:
         # Ctrl-C: the run folder is resumable; say so and stop (a sweep too), exit code 130 as for SIGINT
         message = str(exc) if isinstance(exc, RunInterrupted) else "interrupted; run the same command again to continue"
         log.error("RunInterrupted: %s", message)
-        sys.exit(130)
+        sys.exit(RunInterrupted.exit_code)
     except NerfArtError as exc:
         # The project's own errors already say what is wrong and how to fix it: no traceback.
         log.error("%s: %s", type(exc).__name__, exc)
@@ -60,7 +60,7 @@ def _app(cfg: DictConfig) -> float | None:
         if hc.mode == RunMode.MULTIRUN:  # keep the sweep going; the summary shows the failure
             atomic_write_json(Path(hc.runtime.output_dir) / "result.json", {"error": f"{type(exc).__name__}: {exc}"})
             return None
-        sys.exit(2)
+        sys.exit(exc.exit_code)
     try:
         return objective(results, cfg.objective)
     except ConfigError as exc:

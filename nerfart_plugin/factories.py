@@ -242,9 +242,10 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     c, sc = scene.cfg, stylize_settings(scene)
     style = style or build_style(c)
     views = scene.views(scene.scene.train_ids, sc.resolution)
-    return StylizationSystem(sc, c.experiment, c.backbone, c.encoding, c.render, scene.setup, source_state, views,
-                             style.guidance, style.perceptual, style.prompt, style.source_prompt,
-                             negatives_of(style, sc.negatives), seed=c.seed,
+    return StylizationSystem(cfg=sc, experiment=c.experiment, backbone_cfg=c.backbone, encoding_cfg=c.encoding,
+                             render_cfg=c.render, setup=scene.setup, source_state=source_state, views=views,
+                             guidance=style.guidance, perceptual=style.perceptual, prompt=style.prompt,
+                             source_prompt=style.source_prompt, negatives=negatives_of(style, sc.negatives), seed=c.seed,
                              out_dir=str(out_dir) if out_dir is not None else None, stamp=style.stamp,
                              raw_prompt=style.raw_prompt)
 

@@ -38,15 +38,21 @@ log = logging.getLogger("nerfart_plugin")
 
 
 def validate_config(c: Any) -> dict:
-    """Every setting checked before anything is loaded (:mod:`nerfart_plugin.schema`: types, ranges,
+    """THE validation of a run's config (the CLI, the API and :class:`Pipeline` all come here): every setting
+    checked before anything is loaded (:func:`nerfart_plugin.schema.check_settings`: types, ranges,
     choices, unknown keys), then what depends on the stage: multi-device only for the reconstruction,
     a prompt for stylization, an existing ``source_checkpoint``, an available ``device``.
 
     Returns the config (a plain dict) with the values validation converted (``"512"`` -> 512).
     """
+    return validated(c)[1]
+
+
+def validated(c: Any) -> tuple[RunConfig, dict]:
+    """:func:`validate_config`, typed: ``(RunConfig, the plain validated dict)``."""
     run, plain = parse_config(c)
     check_stage(run)
-    return plain
+    return run, plain
 
 
 def check_stage(c: RunConfig) -> None:
@@ -100,8 +106,7 @@ class Pipeline:
     """
 
     def __init__(self, cfg: DictConfig | dict) -> None:
-        self.cfg, self.plain = parse_config(cfg)
-        check_stage(self.cfg)
+        self.cfg, self.plain = validated(cfg)
         self.root = check_writable_dir(self.cfg.output_root, "output_root")
         self.results: dict[str, Any] = {"stage": self.cfg.stage}
         self.style: Optional[Style] = None

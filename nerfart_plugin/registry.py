@@ -7,7 +7,7 @@ Usage::
     @registry.register("backbone", "neus")
     class NeuSField(...): ...
 
-    field = registry.build("backbone", "neus", **cfg)
+    field = registry.get("backbone", "neus")(**cfg)
 
 Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``. Other
 distributions add components through entry points (:mod:`nerfart_plugin.plugins`).
@@ -68,8 +68,3 @@ def get(kind: str, name: str) -> Any:
         valid = ", ".join(sorted(table)) or "(none registered)"
         raise ConfigError(f"Unknown {kind} {name!r}. Valid {kind} names: {valid}.")
     return table[name]
-
-
-def build(kind: str, name: str, *args: Any, **kwargs: Any) -> Any:
-    """Instantiate the class registered as ``kind``/``name``."""
-    return get(kind, name)(*args, **kwargs)

@@ -8,7 +8,7 @@
   ConfigStore as ``nerfart_schema``, the first entry of ``conf/config.yaml``'s defaults
   list, so presets, experiments and command-line overrides compose on top of it,
   ``--cfg job`` prints it and ``--help`` lists every field with its description.
-* :func:`validate_config` checks a composed config (a plain dict) before any data,
+* :func:`check_settings` checks a composed config (a plain dict) before any data,
   weights or training is touched, and raises ONE :class:`~nerfart_plugin.errors.ConfigError`
   listing every violation as ``key=value: what is allowed (how to turn it off)``;
   :func:`parse_config` returns it typed (:class:`RunConfig`).
@@ -48,7 +48,7 @@ from nerfart_plugin.errors import ConfigError
 
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
-    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "validate_config", "parse_config",
+    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "check_settings", "parse_config",
     "component_model", "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
 ]
 
@@ -924,7 +924,7 @@ def _merge(original: Any, coerced: Any) -> Any:
     return original if same_kind and original == coerced else coerced
 
 
-def validate_config(c: dict) -> dict:
+def check_settings(c: dict) -> dict:
     """Check every setting of the composed config ``c`` (a plain dict).
 
     Returns:
@@ -950,12 +950,12 @@ def validate_config(c: dict) -> dict:
 
 
 def parse_config(c: Any) -> tuple[RunConfig, dict]:
-    """:func:`validate_config` of ``c`` (a dict or DictConfig), typed: ``(RunConfig, the plain validated dict)``.
+    """:func:`check_settings` of ``c`` (a dict or DictConfig), typed: ``(RunConfig, the plain validated dict)``.
 
     The dict is what a run folder's ``config.yaml`` records; the RunConfig is what code reads
     (``cfg.reconstruct.steps``; the component sections stay dicts: ``cfg.backbone["name"]``).
     """
-    plain = validate_config(to_plain(c))
+    plain = check_settings(to_plain(c))
     return RunConfig.model_validate(plain), plain
 
 

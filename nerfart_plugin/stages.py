@@ -107,9 +107,13 @@ class TrainingStage:
         from nerfart_plugin.data.camera_path import CaptureCameras
         from nerfart_plugin.viewer.live import LiveViewer
 
-        cams = CaptureCameras.from_scene(self.scene.scene, self.scene.ndc)
+        from nerfart_plugin.viewer.panels import thumbnails
+
+        scene = self.scene.scene
+        cams = CaptureCameras.from_scene(scene, self.scene.ndc)
         return [LiveViewer(cams, host=vc.host, port=vc.port, render_share=vc.render_share,
-                           chunk=self.scene.cfg.render.chunk, folder=self.folder.path, title=self.folder.what)]
+                           chunk=self.scene.cfg.render.chunk, folder=self.folder.path, title=self.folder.what,
+                           photos=thumbnails(scene.images.numpy()))]
 
     def build_system(self) -> Any:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -88,12 +88,12 @@ def test_plus_data_at_package_composes_a_second_data_config():
     first ``data`` untouched), which the schema then names as an unknown top-level key."""
     from nerfart_plugin.errors import ConfigError
     from nerfart_plugin.factories import load_config
-    from nerfart_plugin.schema import validate_config, to_plain
+    from nerfart_plugin.schema import check_settings, to_plain
 
     cfg = load_config(normalize_overrides(["data=llff", "data.path=x", "+data@foo=h3ds"]))
     assert cfg.foo.kind == "h3ds" and cfg.data.kind == "llff"
     with pytest.raises(ConfigError, match="foo"):
-        validate_config(to_plain(cfg))
+        check_settings(to_plain(cfg))
 
 
 PROMPTS = [

@@ -34,7 +34,7 @@ def cfg(*overrides: str) -> dict:
 
 def error_of(*overrides: str) -> str:
     with pytest.raises(ConfigError) as info:
-        schema.validate_config(cfg(*overrides))
+        schema.check_settings(cfg(*overrides))
     return str(info.value)
 
 
@@ -70,7 +70,7 @@ def test_composed_defaults_are_the_schema_defaults():
     composed = cfg()
     defaults = schema.RunConfig().model_dump(mode="json", exclude=set(schema.COMPONENTS))
     assert {k: composed[k] for k in defaults} == defaults
-    assert schema.validate_config(composed) == composed  # validation changes nothing in the defaults
+    assert schema.check_settings(composed) == composed  # validation changes nothing in the defaults
 
 
 def test_help_lists_every_setting_with_its_description():
@@ -100,7 +100,7 @@ GROUP_VARIANTS = [(), ("data=llff", "data.path=x"), ("data=selfie", "data.path=x
 @pytest.mark.parametrize("overrides", GROUP_VARIANTS, ids=lambda o: " ".join(o) or "default")
 def test_every_group_option_validates(overrides):
     c = cfg(*overrides)
-    assert schema.validate_config(c) == c
+    assert schema.check_settings(c) == c
 
 
 # ---------------------------------------------------------------------- the reported cases (preset=draft)
@@ -122,7 +122,7 @@ def test_reported_impossible_settings_are_one_config_error(override, message):
 
 
 def test_val_every_zero_means_no_validation():
-    c = schema.validate_config(cfg("preset=draft", "reconstruct.val_every=0"))
+    c = schema.check_settings(cfg("preset=draft", "reconstruct.val_every=0"))
     assert c["reconstruct"]["val_every"] == 0
 
 
@@ -216,7 +216,7 @@ def test_unknown_keys_suggest_the_closest_valid_key():
 
 
 def test_every_key_the_code_reads_has_a_default():
-    c = schema.validate_config(cfg("render.ndc_bound=2.0", "experiment.lambda_eikonal=0.3"))
+    c = schema.check_settings(cfg("render.ndc_bound=2.0", "experiment.lambda_eikonal=0.3"))
     assert c["render"]["ndc_bound"] == 2.0 and c["experiment"]["lambda_eikonal"] == 0.3
 
 
@@ -234,7 +234,7 @@ def test_values_are_converted_only_where_their_meaning_changes():
     c["prompt_augment"] = "false"
     c["prompt"] = 1984
     c["data"]["resolution"] = 128
-    out = schema.validate_config(c)
+    out = schema.check_settings(c)
     assert out["reconstruct"]["batch_rays"] == 512 and out["prompt_augment"] is False and out["prompt"] == "1984"
     assert type(out["data"]["resolution"]) is int and type(out["reconstruct"]["lr"]) is float
 

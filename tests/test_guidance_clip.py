@@ -267,6 +267,22 @@ def test_missing_local_file_and_bad_tag(no_network, tmp_path) -> None:
         CLIPGuidance(model="ViT-Nope")
 
 
+def test_a_file_that_is_not_clip_weights_gets_an_error_naming_it(no_network, tmp_path) -> None:
+    """Random bytes, an empty file, a pickle of something else, and another model's checkpoint: each is refused
+    with WeightsMissingError naming the file and what CLIP weights are, never a raw unpickling traceback."""
+    import pickle
+
+    bad = {"random.pt": bytes(range(256)) * 64, "empty.pt": b"", "pickle.pt": pickle.dumps({"not": "weights"})}
+    for name, data in bad.items():
+        (tmp_path / name).write_bytes(data)
+    torch.save({"state_dict": {"renderer.field.w": torch.zeros(3)}, "epoch": 0}, tmp_path / "final.ckpt")
+    for name in (*bad, "final.ckpt"):
+        with pytest.raises(WeightsMissingError, match=rf"CLIP checkpoint .*{name} could not be loaded .*It must be "
+                                                      r"CLIP weights") as info:
+            CLIPGuidance(pretrained=str(tmp_path / name), model_overrides=TINY_TEST_OVERRIDES)
+        assert "guidance.clip.pretrained" in str(info.value)
+
+
 def test_random_fallback_when_allowed(no_network, tmp_path) -> None:
     g = CLIPGuidance(
         pretrained="openai", cache_dir=str(tmp_path), allow_random_weights=True, model_overrides=TINY_TEST_OVERRIDES

@@ -126,9 +126,10 @@ def _stylization(cfg: dict, tv_weight: float = 0.5, occupancy: int = 8) -> Styli
     setup = _setup(occupancy=occupancy)
     src = build_renderer(BACKBONE, enc, RENDER, setup)
     views = [camera_batch(torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), torch.eye(4)[:3], 8, 8, 0.5, 3.5, False)]
-    return StylizationSystem({"steps": 2, **cfg}, {"lambda_global": 0.0, "lambda_local": 0.0}, BACKBONE, enc, RENDER,
-                             setup, src.state_dict(), views, ToyGuidance(), EdgePerceptual(), "red", "a photo",
-                             ["blue"])
+    return StylizationSystem(cfg={"steps": 2, **cfg}, experiment={"lambda_global": 0.0, "lambda_local": 0.0},
+                             backbone_cfg=BACKBONE, encoding_cfg=enc, render_cfg=RENDER, setup=setup,
+                             source_state=src.state_dict(), views=views, guidance=ToyGuidance(),
+                             perceptual=EdgePerceptual(), prompt="red", source_prompt="a photo", negatives=["blue"])
 
 
 def test_stylize_num_samples_only_where_an_occupancy_grid_places_them():

@@ -37,9 +37,10 @@ def system_for(cfg: dict) -> StylizationSystem:
     src.occupancy.update(src.field, 0, force=True)  # the reconstruction's grid: a shell around r = 0.3
     views = [camera_batch(torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]), torch.eye(4)[:3], 16, 16,
                           0.5, 3.5, False)]
-    return StylizationSystem({"steps": 10, **cfg}, {"lambda_global": 0.0, "lambda_local": 0.0},
-                             BACKBONE, ENCODING, RENDER, setup(), src.state_dict(), views, ToyGuidance(),
-                             EdgePerceptual(), "red", "a photo", ["blue"])
+    return StylizationSystem(cfg={"steps": 10, **cfg}, experiment={"lambda_global": 0.0, "lambda_local": 0.0},
+                             backbone_cfg=BACKBONE, encoding_cfg=ENCODING, render_cfg=RENDER, setup=setup(),
+                             source_state=src.state_dict(), views=views, guidance=ToyGuidance(),
+                             perceptual=EdgePerceptual(), prompt="red", source_prompt="a photo", negatives=["blue"])
 
 
 def grow_surface(system: StylizationSystem, by: float) -> None:

@@ -29,7 +29,7 @@ def occupancy_scores_opacity(backbone_cfg: dict[str, Any]) -> bool:
     SDF fields score a shell around the surface instead."""
     from nerfart_plugin import registry
 
-    name = (backbone_cfg or {}).get("name") or (backbone_cfg or {}).get("type")
+    name = (backbone_cfg or {}).get("name")
     return name is not None and registry.get("backbone", str(name)).occupancy_threshold is None
 
 
@@ -39,7 +39,7 @@ def build_field(backbone_cfg: dict[str, Any], encoding_cfg: Optional[dict[str, A
     from nerfart_plugin import registry
 
     cfg = dict(backbone_cfg or {})
-    name = cfg.pop("name", None) or cfg.pop("type", None)
+    name = cfg.pop("name", None)
     if name is None:
         raise ConfigError("backbone config has no 'name'; set backbone.name to one of: " + ", ".join(registry.names("backbone")))
     cls = registry.get("backbone", str(name))

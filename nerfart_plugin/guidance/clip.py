@@ -251,16 +251,21 @@ class CLIPGuidance(Guidance):
                 cache_dir=cache_dir,
                 **overrides,
             )
-        except (RuntimeError, OSError, KeyError, ValueError) as exc:
+        except Exception as exc:  # noqa: BLE001 - a bad weights file fails in many ways (pickle, zip, safetensors)
             if checkpoint is None:
+                if not isinstance(exc, (RuntimeError, OSError, KeyError, ValueError)):
+                    raise
                 raise ConfigError(
                     f"Could not build open_clip model {model!r} with guidance.clip.model_overrides={overrides}: {exc}"
                 ) from exc
             raise WeightsMissingError(
-                f"CLIP checkpoint {checkpoint} could not be loaded into model {model!r} ({exc}). "
-                "Check that guidance.clip.model matches the checkpoint's architecture, or re-download it "
+                f"CLIP checkpoint {checkpoint} could not be loaded into model {model!r} "
+                f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'}). It must be CLIP "
+                "weights that open_clip reads (OpenAI's ViT-B-32.pt, an open_clip .bin or .safetensors) for the "
+                "architecture guidance.clip.model names; a damaged download, another model's checkpoint or a "
+                "run's final.ckpt is not. Re-download it "
                 f"(python -c \"import open_clip; open_clip.create_model_and_transforms('{model}', "
-                f"pretrained='{pretrained}')\")."
+                f"pretrained='{pretrained}')\") or point guidance.clip.pretrained at the right file."
             ) from exc
         self.is_real = checkpoint is not None
         if not self.is_real:

@@ -111,6 +111,26 @@ def _regularizer(name: str):
     return lambda out, rays: out["regularizers"][name]
 
 
+@dataclass
+class ImagePass:
+    """What pass 1 of a step hands to pass 2.
+
+    Attributes:
+        render: the view's render without grad (``rgb`` [H*W,3], ``t_samples``: the samples pass 2 re-renders).
+        graph: with ``stylize.backprop=retain``, the render's chunks with their graph kept; else None.
+        img: the view [1,3,H,W] the image losses saw; terms: their values; loss: their weighted sum.
+        rgb_grad: dL/dI [H*W,3]; rendered_at: ``time.perf_counter()`` when the render was done.
+    """
+
+    render: dict[str, Any]
+    graph: Optional[Any]
+    img: Tensor
+    terms: dict[str, Tensor]
+    loss: Tensor
+    rgb_grad: Tensor
+    rendered_at: float
+
+
 class StylizationSystem(RenderSystem):
     """Fine-tunes a copy of the reconstructed field; the frozen source gives I_src.
 
@@ -133,7 +153,7 @@ class StylizationSystem(RenderSystem):
 
     stage = "stylize"
 
-    def __init__(self, cfg: StylizeConfig | dict, experiment: ExperimentConfig | dict, backbone_cfg: dict,
+    def __init__(self, *, cfg: StylizeConfig | dict, experiment: ExperimentConfig | dict, backbone_cfg: dict,
                  encoding_cfg: dict, render_cfg: RenderConfig | dict, setup: SceneSetup, source_state: dict,
                  views: list[dict], guidance: Any, perceptual: Any, prompt: str, source_prompt: str, negatives: list,
                  seed: int = 0, out_dir: Optional[str] = None, stamp: str = "", raw_prompt: Optional[str] = None) -> None:
@@ -303,24 +323,23 @@ class StylizationSystem(RenderSystem):
         t0 = time.perf_counter()
         src = self.source_view(i)
         t1 = time.perf_counter()
-        first, img, terms, image_loss, rgb_grad, t2 = self.image_pass(view, src, g, step)
+        first = self.image_pass(view, src, g, step)
         t3 = time.perf_counter()
         ray_losses = self.ray_losses()
-        ray_terms = self.patch_pass(view, src, first, rgb_grad, ray_losses, step)
+        ray_terms = self.patch_pass(view, src, first, ray_losses, step)
         t4 = time.perf_counter()
-        total = float(image_loss.detach()) if terms else 0.0
+        total = float(first.loss.detach()) if first.terms else 0.0
         total += sum(ray_losses[k][0] * v for k, v in ray_terms.items())
-        self._log_step(terms, ray_terms, total, (t0, t1, t2, t3, t4))
-        self._save_render(step, src, img)
+        self._log_step(first.terms, ray_terms, total, (t0, t1, first.rendered_at, t3, t4))
+        self._save_render(step, src, first.img)
 
-    def image_pass(self, view: dict[str, Any], src: dict[str, Any], g: torch.Generator, step: int) -> tuple:
+    def image_pass(self, view: dict[str, Any], src: dict[str, Any], g: torch.Generator, step: int) -> "ImagePass":
         """Pass 1: the full view at samples fixed for this step (without grad; ``stylize.backprop=retain``:
-        with grad, the render's graph kept in ``render["chunks"]``), the image terms and dL/dI.
-        Returns ``(render, img [1,3,H,W], terms, weighted loss, dL/dI [H*W,3], time after rendering)``."""
+        with grad, the render's graph kept), the image terms and dL/dI (:class:`ImagePass`)."""
         H, W = view["H"], view["W"]
+        graph = None
         if self.cfg.backprop == "retain":
-            first, chunks = render_with_graph(self.renderer, view, self.cfg.chunk, perturb=True)
-            first["chunks"] = chunks
+            first, graph = render_with_graph(self.renderer, view, self.cfg.chunk, perturb=True)
         else:
             first = render_fixed_samples(self.renderer, view, self.cfg.chunk, perturb=True)
         t_render = time.perf_counter()
@@ -330,23 +349,23 @@ class StylizationSystem(RenderSystem):
         with torch.autocast(img.device.type, enabled=False):  # backward ops in their forward dtypes (two_pass)
             rgb_grad = (torch.autograd.grad(image_loss, img)[0][0].permute(1, 2, 0).reshape(-1, 3) if terms
                         else torch.zeros_like(first["rgb"]))
-        return first, img, terms, image_loss, rgb_grad, t_render
+        return ImagePass(first, graph, img, terms, image_loss, rgb_grad, t_render)
 
-    def patch_pass(self, view: dict[str, Any], src: dict[str, Any], first: dict[str, Any], rgb_grad: Tensor,
+    def patch_pass(self, view: dict[str, Any], src: dict[str, Any], first: "ImagePass",
                    ray_losses: dict[str, tuple[float, Any]], step: int) -> dict[str, float]:
-        """Pass 2: re-render patches with grad at the samples of pass 1's ``first`` render (or, with
-        ``stylize.backprop=retain``, use the graph it kept), back-propagate dL/dI and the ray terms, then
-        one optimizer step. Returns each ray term's value (mean over the view's rays)."""
+        """Pass 2: re-render patches with grad at the samples of pass 1 (or, with ``stylize.backprop=retain``,
+        use the graph it kept), back-propagate dL/dI and the ray terms, then one optimizer step. Returns each
+        ray term's value (mean over the view's rays)."""
         opt = self.optimizers()
         opt.zero_grad(set_to_none=True)
         if self.lambdas["silhouette"] > 0:
             view = {**view, "source_opacity": src["opacity"]}
-        if "chunks" in first:
-            ray_terms = backprop_retained(first.pop("chunks"), view, rgb_grad, ray_losses,
-                                          backward=self.manual_backward)
+        if first.graph is not None:
+            graph, first.graph = first.graph, None  # freed with the backward
+            ray_terms = backprop_retained(graph, view, first.rgb_grad, ray_losses, backward=self.manual_backward)
         else:
-            ray_terms = backprop_patches(self.renderer, view, first["t_samples"], rgb_grad, self.cfg.patch_size ** 2,
-                                         ray_losses, backward=self.manual_backward)
+            ray_terms = backprop_patches(self.renderer, view, first.render["t_samples"], first.rgb_grad,
+                                         self.cfg.patch_size ** 2, ray_losses, backward=self.manual_backward)
         check_finite_grads(self, step)
         opt.step()
         return ray_terms

@@ -39,6 +39,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                              checkpoint=args.checkpoint)
     except NerfArtError as exc:
         p.exit(2, f"error: {exc}\n")
+    if args.host not in ("127.0.0.1", "localhost", "::1"):
+        logging.getLogger("nerfart_plugin.viewer").warning(
+            "serving on %s: anyone who can reach this machine on port %d can view the run and use its panels "
+            "(there is no login)", args.host, viewer.port)
     print(f"nerfart_plugin viewer: open {viewer.url} in a browser (Ctrl-C to stop)", flush=True)
     print(REMOTE_HINT.format(port=viewer.port), flush=True)
     try:

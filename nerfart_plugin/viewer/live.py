@@ -73,12 +73,13 @@ class LiveViewer(L.Callback):
         cameras: the capture's cameras (:class:`~nerfart_plugin.data.camera_path.CaptureCameras`).
         host / port: where to serve; render_share: the share of wall time frames may take.
         chunk: rays per no-grad chunk of a frame; folder: the run folder (camera paths are saved under
-            ``<folder>/render``).
+            ``<folder>/render``); photos: the capture's photos as thumbnails for the frustums.
     """
 
     def __init__(self, cameras: Any, host: str = "127.0.0.1", port: int = 8080, render_share: float = 0.1,
-                 chunk: int = 8192, folder: Optional[Path] = None, title: str = "training") -> None:
-        self.cameras, self.host, self.port = cameras, host, port
+                 chunk: int = 8192, folder: Optional[Path] = None, title: str = "training",
+                 photos: Optional[list] = None) -> None:
+        self.cameras, self.host, self.port, self.photos = cameras, host, port, photos
         self.render_share, self.chunk, self.folder, self.title = render_share, chunk, folder, title
         self.control = TrainingControl()
         self.viewer: Any = None
@@ -130,6 +131,8 @@ class LiveViewer(L.Callback):
         viewer.panels["view"] = panels.add_view_panel(viewer, field.is_stylization)
         viewer.path_editor = PathEditor(viewer, None)
         capture = panels.CaptureCameras(viewer)
+        if self.photos is not None:
+            capture.set_photos(self.photos)
         viewer.close_hooks.append(capture.forget)
         viewer.panels["capture"] = capture
         return viewer
