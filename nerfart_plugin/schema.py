@@ -163,7 +163,7 @@ class RenderConfig(Section):
 class ReconstructConfig(Section):
     """``reconstruct``: stage 1, fitting the field to the photos."""
 
-    steps: Int = Setting(6000, ge=1, le=10**9, description="optimizer steps", off=_NO_STEPS)
+    steps: Int = Setting(4000, ge=1, le=10**9, description="optimizer steps", off=_NO_STEPS)
     batch_rays: Int = Setting(512, ge=1, le=2**18, description="random training rays per step")
     lr: Float = Setting(0.01, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
     lr_mlp: Float = Setting(0.003, gt=0.0, le=10.0, description="Adam rate of the MLPs (times encoding.mlp_lr_scale)")
@@ -192,7 +192,7 @@ class ReconstructConfig(Section):
 class StylizeConfig(Section):
     """``stylize``: stage 2, the text-driven fine-tuning (Eq. 8)."""
 
-    steps: Int = Setting(200, ge=1, le=10**9, description="optimizer steps (one view each)", off=_NO_STEPS)
+    steps: Int = Setting(130, ge=1, le=10**9, description="optimizer steps (one view each)", off=_NO_STEPS)
     epochs: Optional[Int] = Setting(None, ge=1, le=10**6, description="if set, steps = epochs x training views "
                                     "(the paper: 4); null: use steps")
     lr: Float = Setting(0.01, gt=0.0, le=10.0, description="Adam rate of the encoding (grid) parameters")
