@@ -223,8 +223,9 @@ def test_a_training_run_is_watched_paused_and_stopped_from_the_browser(page, tmp
     callback, viewer = started[0]
     with page.new_tab(viewer.url) as watching:
         assert wait_for(lambda: viewer.tabs and next(iter(viewer.tabs.values())).frames >= 2, 60)
-        frame = next(iter(viewer.tabs.values())).last_frame
-        assert frame.std() > 1.0  # the field being trained, not a blank frame
+        tab = next(iter(viewer.tabs.values()))
+        # the field being trained appears (an untrained field renders the white background at first)
+        assert wait_for(lambda: tab.last_frame is not None and tab.last_frame.std() > 1.0, 90)
         watching.click("Pause")
         assert wait_for(lambda: callback.control.paused, 10)
         time.sleep(0.5)

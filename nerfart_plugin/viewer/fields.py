@@ -250,6 +250,11 @@ class LiveField:
     def close(self) -> None:
         self._closed.set()
 
+    @property
+    def closed(self) -> bool:
+        """The training has ended: no more frames."""
+        return self._closed.is_set()
+
     def render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> np.ndarray:
         dev = self.system.device
         live = self.system.renderer

@@ -97,6 +97,8 @@ class TabRenderer:
             try:
                 frame, seconds = self._render(camera, side, settings)
             except Exception:  # noqa: BLE001 - a failed frame must not end the tab's thread
+                if self._stop or getattr(self.field, "closed", False):  # the viewer is closing
+                    return
                 log.exception("the viewer could not render a frame")
                 time.sleep(1.0)
                 continue
