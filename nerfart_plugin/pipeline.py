@@ -18,8 +18,8 @@ running code and checked against the model (:mod:`nerfart_plugin.checkpoints`).
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Callable, Optional
 
 import lightning as L
@@ -38,7 +38,7 @@ log = logging.getLogger("nerfart_plugin")
 
 
 def validate_config(c: Any) -> dict:
-    """THE validation of a run's config (the CLI, the API and :class:`Pipeline` all come here): every setting
+    """The one validation of a run's config (:class:`Pipeline`, hence the CLI, comes here): every setting
     checked before anything is loaded (:func:`nerfart_plugin.schema.check_settings`: types, ranges,
     choices, unknown keys), then what depends on the stage: multi-device only for the reconstruction,
     a prompt for stylization, an existing ``source_checkpoint``, an available ``device``.
