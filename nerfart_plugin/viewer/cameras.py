@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -91,10 +92,16 @@ def capture_camera(cams: CaptureCameras, i: int) -> ViewCamera:
 def render_path(camera: ViewCamera, cams: CaptureCameras, long_side: int, name: str = "viewer") -> RenderPath:
     """The one-camera :class:`RenderPath` (normalized frame) that renders ``camera`` with the long side at
     ``long_side`` pixels."""
-    H, W = camera.size(long_side)
-    c2w = cams.from_world(camera.c2w[None])
-    K = torch.as_tensor(camera.intrinsics(H, W), dtype=torch.float32)[None]
-    return RenderPath(name, torch.as_tensor(c2w, dtype=torch.float32), K, H, W)
+    return path_of([camera], cams, long_side, name)
+
+
+def path_of(cameras: Sequence[ViewCamera], cams: CaptureCameras, long_side: int, name: str) -> RenderPath:
+    """The :class:`RenderPath` (normalized frame) of world-frame ``cameras`` at ``long_side`` pixels (the first
+    camera's aspect)."""
+    H, W = cameras[0].size(long_side)
+    c2w = cams.from_world(np.stack([c.c2w for c in cameras]))
+    K = np.stack([c.intrinsics(H, W) for c in cameras])
+    return RenderPath(name, torch.as_tensor(c2w, dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32), H, W)
 
 
 def scene_scale(cams: CaptureCameras) -> float:

@@ -12,13 +12,12 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import torch
 from scipy.spatial.transform import Rotation, Slerp
 
 from nerfart_plugin.data.camera_path import CaptureCameras
 from nerfart_plugin.data.render_path import RenderPath, write_camera_path
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.viewer.cameras import ViewCamera
+from nerfart_plugin.viewer.cameras import ViewCamera, path_of
 
 #: frames a path may have
 FRAMES_RANGE = (2, 10_000)
@@ -58,18 +57,10 @@ def catmull_rom(points: np.ndarray, u: np.ndarray) -> np.ndarray:
                   + (-p0 + 3 * p1 - 3 * p2 + p3) * t ** 3)
 
 
-def path_cameras(cameras: Sequence[ViewCamera], cams: CaptureCameras, long_side: int, name: str) -> RenderPath:
-    """The :class:`RenderPath` (normalized frame) of world-frame ``cameras`` at ``long_side`` pixels."""
-    H, W = cameras[0].size(long_side)
-    c2w = cams.from_world(np.stack([c.c2w for c in cameras]))
-    K = np.stack([c.intrinsics(H, W) for c in cameras])
-    return RenderPath(name, torch.as_tensor(c2w, dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32), H, W)
-
-
 def save_path(keyframes: Sequence[ViewCamera], cams: CaptureCameras, out: Path, frames: int, fps: int,
               long_side: int) -> tuple[Path, RenderPath]:
     """Write the path through ``keyframes`` as a nerfstudio ``camera_path.json`` at ``out`` (world frame)
     and return it with its :class:`RenderPath`."""
-    rp = path_cameras(interpolate(keyframes, frames), cams, long_side, Path(out).stem)
+    rp = path_of(interpolate(keyframes, frames), cams, long_side, Path(out).stem)
     rp.fps = int(fps)
     return write_camera_path(rp, cams, Path(out), int(fps)), rp

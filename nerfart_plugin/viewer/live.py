@@ -133,8 +133,6 @@ class LiveViewer(L.Callback):
         capture = panels.CaptureCameras(viewer)
         if self.photos is not None:
             capture.set_photos(self.photos)
-        viewer.close_hooks.append(capture.forget)
-        viewer.panels["capture"] = capture
         return viewer
 
     def _request_stop(self, trainer: L.Trainer) -> None:

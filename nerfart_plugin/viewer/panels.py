@@ -87,6 +87,8 @@ class CaptureCameras:
                                                         "click one to look through it")
         self.show.on_update(lambda _: self._visibility())
         viewer.tab_hooks.append(self.add_to)
+        viewer.close_hooks.append(self.forget)
+        viewer.panels["capture"] = self
 
     def add_to(self, client: Any) -> None:
         train = set(self.viewer.cams.train_ids)
