@@ -118,10 +118,18 @@ def view_region(shot: np.ndarray) -> np.ndarray:
     return shot[:, : shot.shape[1] // 2]
 
 
-def test_the_page_connects_and_draws_the_scene(page):
+def covered(frame: np.ndarray) -> float:
+    """The share of a frame's pixels that are not the white background."""
+    return float((frame.astype(int).sum(-1) < 3 * 235).mean())
+
+
+def test_the_page_opens_on_the_front_camera_and_draws_the_scene(page):
+    # a new tab reports the browser's default camera first: the viewer must not show that view
+    front = page.viewer.front.c2w[:, 3]
+    np.testing.assert_allclose(page.tab.first_camera.c2w[:, 3], front, atol=1e-3)
     frame = settle(page)
-    covered = (frame.astype(int).sum(-1) < 3 * 235).mean()  # not the white background
-    assert 0.02 < covered < 0.98, f"the frame is blank or flat ({covered:.0%} covered)"
+    np.testing.assert_allclose(page.tab.camera.c2w[:, 3], front, atol=1e-3)
+    assert 0.02 < covered(frame) < 0.98, f"the frame is blank or flat ({covered(frame):.0%} covered)"
     shot = page.screenshot(Path(os.environ["NERFART_VIEWER_SCREENSHOT"]) if os.environ.get(
         "NERFART_VIEWER_SCREENSHOT") else None)
     assert view_region(shot).std() > 10  # the browser drew the frame, not an empty page

@@ -40,6 +40,8 @@ class TabRenderer:
         self._stop = False
         self.frames = 0
         self.last_frame: Optional[np.ndarray] = None
+        #: the camera of the first frame sent (a new tab's view)
+        self.first_camera: Optional[ViewCamera] = None
         self.last_seconds = 0.0
         self._not_before = 0.0
         self._thread = threading.Thread(target=self._loop, name=f"viewer-{name}", daemon=True)
@@ -65,6 +67,11 @@ class TabRenderer:
             self._stop = True
             self._wake.notify()
         self._thread.join(timeout=10.0)
+
+    @property
+    def camera(self) -> Optional[ViewCamera]:
+        """The camera the tab renders now (world frame); None before the first."""
+        return self._camera
 
     @property
     def alive(self) -> bool:
@@ -107,7 +114,7 @@ class TabRenderer:
                 outdated = self._snapshot()[0] != state
             self.schedule.rendered(frame.shape[0] * frame.shape[1], seconds)
             if not outdated or side == self.schedule.moving_side(camera.aspect):
-                self._send(frame, seconds)
+                self._send(frame, seconds, camera)
 
     def _seen_now(self) -> tuple[int, int]:
         return self._state_changed, getattr(self.field, "version", 0)
@@ -116,7 +123,9 @@ class TabRenderer:
         with self.field.lock:
             return self.field.timed_render(camera, side, settings)
 
-    def _send(self, frame: np.ndarray, seconds: float) -> None:
+    def _send(self, frame: np.ndarray, seconds: float, camera: ViewCamera) -> None:
+        if self.first_camera is None:
+            self.first_camera = camera
         self.last_frame, self.last_seconds = frame, seconds
         self.frames += 1
         try:

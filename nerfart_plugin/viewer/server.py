@@ -111,7 +111,8 @@ class Viewer:
         def _(camera: Any) -> None:
             tab.set_camera(self.camera_of(camera))
 
-        tab.set_camera(self.camera_of(client.camera))
+        # a new tab reports the browser's default camera before it adopts the initial one: open on the front camera
+        tab.set_camera(replace(self.front, aspect=self.camera_of(client.camera).aspect))
         for hook in self.tab_hooks:
             hook(client)
         log.info("viewer: tab %s connected", client.client_id)
