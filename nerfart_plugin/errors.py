@@ -106,11 +106,12 @@ class RunLockedError(NerfArtError, RuntimeError):
 
 
 class RunInterrupted(NerfArtError):
-    """The run was interrupted (Ctrl-C); it resumes from its last checkpoint when started again."""
+    """The run was interrupted (Ctrl-C or SIGTERM); it resumes from its last checkpoint when started again."""
 
     exit_code = 130
     causes = (
-        ("Ctrl-C, or *Stop and save* in the live viewer (`viewer.live=true`)",
+        ("Ctrl-C, SIGTERM (a scheduler's time limit, `timeout`, `kill`), or *Stop and save* in the live viewer "
+         "(`viewer.live=true`)",
          "run the same command again: it resumes from `last.ckpt`; finished stages are reused"),
     )
 

@@ -191,22 +191,30 @@ class ImageNetJudge:
                 "top1_rate": float((rank < 1).float().mean()), "per_view": per_view}
 
 
-def judge_prompt(prompt: str, source: torch.Tensor, stylized: torch.Tensor, view_ids: list[int]) -> dict[str, Any]:
-    """The independent judge's verdict (:func:`judge_block`) on held-out views [B,3,H,W] in [0,1] when
-    ``prompt`` (as typed) names an ImageNet class, else why it did not run (``{"skipped": reason}``)."""
+def judge_for(prompt: str) -> tuple[Optional[ImageNetJudge], int, str]:
+    """The judge and the ImageNet class ``prompt`` (as typed) names: ``(judge, target, "")``, or ``(None, -1,
+    why)`` when the prompt names no class or the judge cannot load."""
     from nerfart_plugin.errors import WeightsMissingError
     from nerfart_plugin.guidance.imagenet import imagenet_classes
 
     try:
         target = imagenet_classes().find(prompt)
     except ImportError as exc:  # timm missing
-        return {"skipped": f"the judge needs timm ({exc}): pip install -e '.[imagenet]'"}
+        return None, -1, f"the judge needs timm ({exc}): pip install -e '.[imagenet]'"
     if target is None:
-        return {"skipped": f"the prompt {prompt!r} names no ImageNet class"}
+        return None, -1, f"the prompt {prompt!r} names no ImageNet class"
     try:
-        judge = ImageNetJudge()
+        return ImageNetJudge(), target, ""
     except WeightsMissingError as exc:
-        return {"skipped": str(exc)}
+        return None, -1, str(exc)
+
+
+def judge_prompt(prompt: str, source: torch.Tensor, stylized: torch.Tensor, view_ids: list[int]) -> dict[str, Any]:
+    """The independent judge's verdict (:func:`judge_block`) on held-out views [B,3,H,W] in [0,1] when
+    ``prompt`` (as typed) names an ImageNet class, else why it did not run (``{"skipped": reason}``)."""
+    judge, target, skipped = judge_for(prompt)
+    if judge is None:
+        return {"skipped": skipped}
     block = judge_block(judge, target, source, stylized, view_ids)
     log.info("judge (%s, held-out views %s): P(%s) %.4f -> %.4f, top-5 %.0f%% -> %.0f%%", block["model"], view_ids,
              block["target_class"], block["source"]["mean_target_prob"], block["stylized"]["mean_target_prob"],

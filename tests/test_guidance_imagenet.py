@@ -173,3 +173,27 @@ def test_the_guide_moves_an_independent_judge(guide: ImageNetGuidance, judge: Im
         opt.step()
     after = float(judge.probabilities(torch.sigmoid(logit).detach())[0, target])
     assert after > 20 * before, (before, after)
+
+
+def test_the_live_viewer_judges_the_still_view_a_tab_shows() -> None:
+    from types import SimpleNamespace
+
+    from nerfart_plugin.viewer.fields import ViewSettings
+    from nerfart_plugin.viewer.live import LiveJudge, LiveViewer
+
+    frame = (head_photo(128)[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
+    tab = SimpleNamespace(last_frame=frame, frames=3, schedule=SimpleNamespace(finished=True))
+    live = LiveViewer(cameras=None)
+    live.viewer = SimpleNamespace(tabs={7: tab}, settings=ViewSettings())
+    live.judge = LiveJudge("brain coral")
+    text = live._judge_view(12, SimpleNamespace(device=torch.device("cpu")))
+    p = float(text.split("P(brain coral) ")[1].split(",")[0])
+    coral = imagenet_classes().find("brain coral")
+    expected = ImageNetJudge().assess(torch.from_numpy(frame).permute(2, 0, 1)[None].float() / 255, coral)
+    assert abs(p - expected["per_view"][0]["target_prob"]) < 1e-3 and "at step 12" in text and "top-1" in text
+    assert not live.judge.due(7, 3)  # the same frame is judged once
+    tab.frames = 4
+    assert not live.judge.due(7, 4)  # and not again before LiveJudge.EVERY_S
+    live.viewer.settings = ViewSettings(mode="source")
+    assert "stylized rgb view" in live._judge_view(13, SimpleNamespace(device=torch.device("cpu")))
+    assert "names no ImageNet class" in LiveJudge("Joker").text

@@ -243,6 +243,60 @@ def test_sigint_during_reconstruction_leaves_a_resumable_run(tmp_path):
 
 
 @pytest.mark.slow
+def test_sigterm_stops_every_ddp_rank_within_seconds_and_the_run_resumes(tmp_path):
+    """Two CPU ranks (gloo): SIGTERM to the launching process (as ``timeout`` sends it) stops both ranks at the
+    same step with ``last.ckpt`` written; the same command then resumes and finishes."""
+    over = [*RECON, "reconstruct.steps=400", "reconstruct.checkpoint_every=5", "trainer.devices=2",
+            "trainer.strategy=ddp", "reconstruct.val_every=0"]
+    args = cli_args(tmp_path, DEFAULT_SCENE, *over)
+    log_file = tmp_path.parent / f"{tmp_path.name}-sigterm.log"
+    with open(log_file, "w") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "nerfart_plugin", *args], cwd=REPO, env=ENV, stdout=fh,
+                                stderr=subprocess.STDOUT, start_new_session=True)
+        _wait_for_checkpoint("reconstructions/*/last.ckpt", tmp_path, proc, 10)
+        ranks = _children(proc.pid)
+        t0 = time.time()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                os.killpg(os.getpgid(proc.pid), signal.SIGKILL)
+    out = log_file.read_text()
+    assert time.time() - t0 < 30, out[-3000:]
+    assert ranks and not any(_alive(pid) for pid in ranks), "a worker rank outlived the launcher"
+    assert proc.returncode == 130, out[-3000:]
+    m = re.search(r"RunInterrupted: interrupted at step (\d+); run the same command again to resume from (\S+)", out)
+    assert m and "Traceback" not in out, out[-3000:]
+    assert _step(Path(m.group(2))) == int(m.group(1)) < 400
+    r = run_cli_subprocess(args, cwd=REPO, env=ENV)
+    assert r.returncode == 0, (r.stdout + r.stderr)[-3000:]
+    assert "resuming the reconstruction from" in r.stdout + r.stderr
+    assert _step(next(tmp_path.glob("reconstructions/*/final.ckpt"))) == 400
+
+
+def _children(pid: int) -> list[int]:
+    """The live child processes of ``pid`` (Linux /proc)."""
+    found = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            found.append(int(stat.parent.name))
+    return found
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.slow
 def test_sigint_during_stylization_leaves_a_resumable_run(tmp_path):
     over = ["stage=all", "guidance=toy", "+prompt=red", "backbone=nerf", "reconstruct.steps=10", "export.enabled=false",
             "stylize.steps=40", "stylize.checkpoint_every=2", "stylize.video_frames=0"]

@@ -74,30 +74,36 @@ class AtomicCheckpoint(L.Callback):
 
 
 class GracefulInterrupt(L.Callback):
-    """Ctrl-C (SIGINT) during training stops at the end of the current step with ``last.ckpt`` written.
+    """Ctrl-C (SIGINT) or SIGTERM during training stops at the end of the current step with ``last.ckpt`` written.
 
-    Lightning turns a KeyboardInterrupt inside ``fit`` into an interrupted run (and, in
-    2.6, ``sys.exit(1)``), mid-step. Instead the first Ctrl-C only sets :attr:`requested`;
-    after the step in progress the checkpoint is written and training stops, so the run
-    resumes exactly where it stopped. A second Ctrl-C stops at once (the last periodic
-    checkpoint is kept). The pipeline then reports the interruption (exit code 130).
+    Lightning turns a KeyboardInterrupt inside ``fit`` into an interrupted run (and, in 2.6,
+    ``sys.exit(1)``), mid-step; its own SIGTERM handler broadcasts from inside the signal handler, which
+    leaves multi-process (DDP) ranks waiting on each other for good. Instead the first signal only sets
+    :attr:`requested`; after the step in progress every rank agrees to stop (one reduction), the
+    checkpoint is written and training stops, so the run resumes exactly where it stopped. A second
+    signal stops at once (the last periodic checkpoint is kept). The pipeline then reports the
+    interruption (exit code 130).
     """
+
+    #: the signals that stop a run gracefully (a scheduler's or ``timeout``'s SIGTERM, as Ctrl-C)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
     def __init__(self, checkpoint: AtomicCheckpoint) -> None:
         self.checkpoint = checkpoint
         self.requested = False
         self.stopped_at: int | None = None
-        self._previous: Any = None
+        self._previous: dict[int, Any] = {}
 
-    def _on_sigint(self, signum: int, frame: Any) -> None:
+    def _on_signal(self, signum: int, frame: Any) -> None:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        log.warning("Ctrl-C: stopping after this step with a checkpoint (press Ctrl-C again to stop at once)")
+        name = "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
+        log.warning("%s: stopping after this step with a checkpoint (a second one stops at once)", name)
 
     def on_train_start(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._on_sigint)
+            self._previous = {int(sig): signal.signal(sig, self._on_signal) for sig in self.SIGNALS}
 
     def on_train_batch_end(self, trainer: L.Trainer, pl_module: L.LightningModule, *args: Any) -> None:
         requested = self.requested
@@ -110,9 +116,10 @@ class GracefulInterrupt(L.Callback):
             trainer.should_stop = True
 
     def _restore(self) -> None:
-        if self._previous is not None and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, self._previous)
-            self._previous = None
+        if self._previous and threading.current_thread() is threading.main_thread():
+            for sig, handler in self._previous.items():
+                signal.signal(sig, handler)
+            self._previous = {}
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self._restore()

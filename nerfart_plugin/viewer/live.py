@@ -4,7 +4,8 @@
 path as Ctrl-C: ``last.ckpt`` written after the step, the run resumes where it stopped when the command
 is run again). :class:`LiveViewer` is the Lightning callback that serves the viewer while the fit runs, renders
 the frames the tabs ask for between two steps, on the training thread, and shows the logged readouts
-(loss, PSNR, seconds per step).
+(loss, PSNR, seconds per step) and, for a stylization whose prompt names an ImageNet class, the independent
+judge's verdict on the view the browser shows (:class:`LiveJudge`).
 Frames take at most ``viewer.render_share`` of the wall time (the tab waits between frames), which bounds
 what watching costs the training.
 """
@@ -18,6 +19,8 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 import lightning as L
+import numpy as np
+import torch
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +69,46 @@ def readouts(metrics: dict[str, Any], step: int, paused: bool, stop: bool) -> st
     return "\n\n".join(lines)
 
 
+class LiveJudge:
+    """The independent judge (:class:`~nerfart_plugin.evaluation.ImageNetJudge`) on the frame a tab shows, during a
+    stylization: the same network and class as the run's final ``judge`` block, on the current field.
+
+    Args:
+        prompt: the stylization's prompt as typed; the judge runs when it names an ImageNet class.
+        render_share: the share of wall time the viewer may take; judging waits so that it keeps to it.
+    """
+
+    #: the least time between two verdicts (seconds)
+    EVERY_S = 5.0
+
+    def __init__(self, prompt: str, render_share: float = 0.1) -> None:
+        from nerfart_plugin.evaluation import judge_for
+
+        self.judge, self.target, self.skipped = judge_for(prompt)
+        self.render_share = render_share
+        self.text = f"judge: not run ({self.skipped})" if self.judge is None else "judge: waiting for a still view"
+        self._judged: tuple[int, int] = (-1, -1)  # (tab, frame count) last judged
+        self._next = 0.0
+
+    def due(self, tab_id: int, frames: int) -> bool:
+        """Whether to judge the ``frames``-th frame of tab ``tab_id`` now (a new still frame, time to spare)."""
+        return self.judge is not None and (tab_id, frames) != self._judged and time.perf_counter() >= self._next
+
+    def assess(self, frame: np.ndarray, tab_id: int, frames: int, step: int, device: torch.device) -> str:
+        """Judge ``frame`` ([H,W,3] uint8, the tab's latest) and return the readout's markdown line."""
+        assert self.judge is not None
+        t0 = time.perf_counter()
+        image = torch.from_numpy(np.ascontiguousarray(frame)).to(device).permute(2, 0, 1)[None].float() / 255.0
+        view = self.judge.assess(image, self.target)["per_view"][0]
+        seconds = time.perf_counter() - t0
+        self._judged = (tab_id, frames)
+        self._next = time.perf_counter() + max(self.EVERY_S, seconds / max(self.render_share, 1e-3))
+        name = self.judge.classes.name(self.target)
+        self.text = (f"judge ({self.judge.model}) on this view at step {step}: P({name}) {view['target_prob']:.3f}, "
+                     f"rank {view['target_rank'] + 1}; top-1 {view['top1']}")
+        return self.text
+
+
 class LiveViewer(L.Callback):
     """Serves the viewer on the field a fit is training (see the module docstring).
 
@@ -83,6 +126,7 @@ class LiveViewer(L.Callback):
         self.render_share, self.chunk, self.folder, self.title = render_share, chunk, folder, title
         self.control = TrainingControl()
         self.viewer: Any = None
+        self.judge: Optional[LiveJudge] = None
         self._last_readout = 0.0
 
     # ---- Lightning hooks
@@ -90,6 +134,9 @@ class LiveViewer(L.Callback):
         if trainer.global_rank != 0:
             return
         self.viewer = self.start(pl_module)
+        prompt = getattr(pl_module, "raw_prompt", None)  # a stylization's prompt as typed
+        if prompt:
+            self.judge = LiveJudge(prompt, self.render_share)
         log.info("live viewer: open %s in a browser to watch the training (pause / stop in its panel)",
                  self.viewer.url)
 
@@ -107,8 +154,24 @@ class LiveViewer(L.Callback):
         now = time.perf_counter()
         if now - self._last_readout > 1.0:
             self._last_readout = now
-            self.viewer.panels["training"]["readouts"].content = readouts(
-                dict(trainer.callback_metrics), trainer.global_step, self.control.paused, self.control.stop_requested)
+            text = readouts(dict(trainer.callback_metrics), trainer.global_step, self.control.paused,
+                            self.control.stop_requested)
+            if self.judge is not None:
+                text += "\n\n" + self._judge_view(trainer.global_step, pl_module)
+            self.viewer.panels["training"]["readouts"].content = text
+
+    def _judge_view(self, step: int, pl_module: Any) -> str:
+        """The judge's line: a new verdict when a tab shows a new still frame and the time share allows."""
+        assert self.judge is not None
+        settings = self.viewer.settings
+        if self.judge.judge is not None and (settings.mode, settings.channel) != ("stylized", "rgb"):
+            return "judge: shown for the stylized rgb view"
+        for tab_id, tab in list(self.viewer.tabs.items()):
+            frame = tab.last_frame
+            if frame is not None and tab.schedule.finished and self.judge.due(tab_id, tab.frames):
+                device = getattr(pl_module, "device", torch.device("cpu"))
+                return self.judge.assess(frame, tab_id, tab.frames, step, device)
+        return self.judge.text
 
     def on_train_end(self, trainer: L.Trainer, pl_module: L.LightningModule) -> None:
         self.close()
