@@ -6,7 +6,8 @@ a graceful Ctrl-C (:class:`~nerfart_plugin.systems.callbacks.GracefulInterrupt`:
 finishes, ``last.ckpt`` is written, :class:`~nerfart_plugin.errors.RunInterrupted` says how
 to resume), resume from a ``last.ckpt`` that fits, an out-of-memory error translated into
 the settings to lower, and checkpoints read with ``weights_only=True``.
-:func:`save_final` writes ``final.ckpt`` (atomically) once the stage's outputs are written.
+:func:`stage_final` saves the final state on every rank (a collective under DDP) and :func:`publish_final`
+renames it to ``final.ckpt`` on rank 0 once the stage's outputs are written.
 :func:`train_steps` is the same Trainer without a run folder (benchmarks, experiments).
 """
 
@@ -25,7 +26,6 @@ from nerfart_plugin.checkpoints import allow_project_types
 from nerfart_plugin.errors import NerfArtError, RunInterrupted
 from nerfart_plugin.runs import RunFolder
 from nerfart_plugin.schema import TrainerConfig, section
-from nerfart_plugin.utils.io import atomic_path
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -149,11 +149,24 @@ def interrupted_message(trainer: Any, stop: Any, last: Optional[Path]) -> str:
     return f"interrupted at {at}, before the first checkpoint; run the same command again to start it over"
 
 
-def save_final(result: FitResult, folder: RunFolder) -> Path:
-    """``final.ckpt`` (full state, atomically): the mark of a finished run, with its content hash beside it."""
+def stage_final(result: FitResult, folder: RunFolder) -> Optional[Path]:
+    """Every rank, right after the fit: the trainer's full state into a staged file beside ``final.ckpt``
+    (under DDP a collective: every rank calls it, rank 0 writes). Rank 0 gets the staged path for
+    :func:`publish_final` once its outputs are written; the other ranks get None."""
+    staged = folder.final.with_name(f".{folder.final.name}.staged")
+    result.trainer.save_checkpoint(staged)
+    return staged if result.is_global_zero else None
+
+
+def publish_final(staged: Path, folder: RunFolder) -> Path:
+    """``final.ckpt``, the mark of a finished run: the staged state renamed into place (atomically, after the
+    stage's outputs), with its content hash beside it."""
+    import os
+
     from nerfart_plugin.runs import write_checkpoint_hash
 
-    with atomic_path(folder.final) as tmp:
-        result.trainer.save_checkpoint(tmp)
+    with open(staged, "rb") as fh:
+        os.fsync(fh.fileno())
+    os.replace(staged, folder.final)
     write_checkpoint_hash(folder.final)
     return folder.final

@@ -29,7 +29,7 @@ from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_renderer,
                                       build_stylization_system, load_renderer_state, stylize_settings)
-from nerfart_plugin.fit import FitResult, fit_stage, save_final
+from nerfart_plugin.fit import FitResult, fit_stage, publish_final, stage_final
 from nerfart_plugin.runs import RunFolder, config_hash, slug
 from nerfart_plugin.schema import component_result_settings, result_settings
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
@@ -83,14 +83,15 @@ class TrainingStage:
         self.folder.prepare(self.scene.cfg.resume, self.scene.plain)
         system = self.build_system()
         fit = self.fit(system)
-        if not fit.is_global_zero:  # DDP: evaluation and outputs on rank 0 only
+        staged = stage_final(fit, self.folder)  # every rank (a collective under DDP)
+        if staged is None:  # DDP: evaluation and outputs on rank 0 only
             return StageResult(self.folder.final)
         self.clock.seconds["fit"] = round(fit.seconds, 3)
         metrics = self.outputs(system, fit)
         metrics["stage_seconds"] = self.clock.seconds
         write_cameras(self.scene, self.folder.path)
         atomic_write_json(self.folder.path / "metrics.json", metrics)
-        save_final(fit, self.folder)
+        publish_final(staged, self.folder)
         return StageResult(self.folder.final, {"dir": str(self.folder.path), **self.summary(metrics)})
 
     # ---- what a stage says
