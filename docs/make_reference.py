@@ -19,9 +19,10 @@ def settings_page() -> str:
     lines = ["# Settings reference", "",
              "Every setting of the sections with fixed keys, generated from the typed config "
              "(`nerfart_plugin/schema.py`; `python docs/make_reference.py` rewrites this page). Set any of them on "
-             "the command line (`render.num_samples=64`) or in a config group. The component sections (`data`, "
-             "`backbone`, `encoding`, `guidance`) take the settings of the component they name: "
-             "`python -m nerfart_plugin data=llff --cfg job` prints them with their defaults.", "",
+             "the command line (`render.num_samples=64`) or in a config group. The component sections "
+             "(`backbone`, `encoding`, `guidance`) take the settings of the component they name: "
+             "`python -m nerfart_plugin backbone=neus --cfg job` prints them with their defaults; the data loaders' "
+             "settings are listed at the end of this page.", "",
              "*Cache key*: whether the setting changes results, so that a run with another value is computed "
              "anew (no: it only changes where outputs go, how often a run logs or saves, or memory)."]
     section = None
@@ -33,7 +34,26 @@ def settings_page() -> str:
             lines += ["", f"## {title}", "", "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
         cell = text.replace("|", "\\|")
         lines.append(f"| `{key}` | `{default}` | {cell} | {'yes' if cached else 'no'} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + component_lines()) + "\n"
+
+
+def component_lines() -> list[str]:
+    """One table per data loader (``data=<kind>``), from the typed ``Config`` beside each loader."""
+    from nerfart_plugin import registry
+    from nerfart_plugin.components import config_of
+    from nerfart_plugin.schema import settings_rows
+
+    lines = ["", "## `data`: the scene loaders", "",
+             "`data=<kind>` picks the loader; besides `data.path`, `data.ndc`, `data.background_color` and "
+             "`data.subject`, each takes the settings below (declared beside the loader, in its `Config`)."]
+    for kind in registry.names("data"):
+        config = config_of(registry.get("data", kind))
+        lines += ["", f"### `data={kind}`", "", (config.__doc__ or "").strip().replace("``", "`"), "",
+                  "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
+        for key, default, text, cached in settings_rows(config, "data."):
+            cell = text.replace("|", "\\|")
+            lines.append(f"| `{key}` | `{default}` | {cell} | {'yes' if cached else 'no'} |")
+    return lines
 
 
 def errors_page() -> str:

@@ -782,11 +782,15 @@ DATA_EXTRAS: tuple[tuple[str, Any, Any], ...] = (
 )
 
 
+@functools.lru_cache(maxsize=None)
 def data_model(kind: str) -> type[BaseModel]:
-    """The pydantic model of ``data`` for loader ``kind`` (its settings + :data:`DATA_EXTRAS`)."""
+    """The pydantic model of ``data`` for loader ``kind``: the loader's ``Config`` + :data:`DATA_EXTRAS`."""
     from nerfart_plugin import registry
+    from nerfart_plugin.components import config_of
 
-    return component_model(registry.get("data", kind), frozenset({"path"}), DATA_EXTRAS)
+    config = config_of(registry.get("data", kind))
+    return create_model(f"{config.__name__}Section", __base__=config,
+                        **{name: (tp, default) for name, tp, default in DATA_EXTRAS})
 
 
 def check_data(cfg: Any) -> tuple[dict, list[Issue]]:

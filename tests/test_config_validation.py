@@ -290,8 +290,7 @@ def _section_model(section: str, values: dict) -> type[BaseModel]:
     from nerfart_plugin import registry
 
     if section == "data":
-        return schema.component_model(registry.get("data", values["kind"]), frozenset({"path"}), (
-            ("kind", str, ...), ("path", Any, None), ("ndc", Any, None), ("background_color", Any, None)))
+        return schema.data_model(values["kind"])
     if section == "backbone":
         return schema.component_model(registry.get("backbone", values["name"]), frozenset({"encoding_cfg", "bound"}),
                                       (("name", str, ...),))

@@ -33,6 +33,23 @@ def test_registry_names():
 
 
 @pytest.mark.slow
+def test_every_loader_declares_its_settings_and_refuses_unknown_options():
+    """Each loader's typed Config is its settings (what the schema checks and --help lists); an unknown or
+    mistyped option, from Python or from the command line, is one ConfigError with the closest valid name."""
+    from nerfart_plugin.components import config_of
+    from nerfart_plugin.errors import ConfigError
+    from nerfart_plugin.schema import check_data
+
+    for kind in registry.names("data"):
+        fields = config_of(registry.get("data", kind)).model_fields
+        assert {"resolution", "holdout_every", "use_masks"} <= set(fields), kind
+        assert all(info.description for info in fields.values()), f"{kind}: a setting without a meaning"
+    with pytest.raises(ConfigError, match=r"data.resolutoin=64: unknown setting; did you mean data.resolution\?"):
+        load_scene("h3ds", default_scene_path(), resolutoin=64)
+    _, issues = check_data({"kind": "llff", "path": "x", "factr": 4})
+    assert [str(i) for i in issues] == [i for i in map(str, issues) if "did you mean data.factor?" in i] and issues
+
+
 def test_girl_h3ds(shared_data):
     s = load_scene("h3ds", shared_data / "girl", resolution=64)
     assert s.images.shape == (31, 64, 64, 3) and s.masks.shape == (31, 64, 64)

@@ -19,6 +19,7 @@ from PIL import Image
 
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import default_scene_path
+from nerfart_plugin.data.loader import LoaderContext
 from nerfart_plugin.data.h3ds import read_cameras_npz
 from nerfart_plugin.data.rays import pixel_rays, rays_for_views
 from nerfart_plugin.errors import DataError
@@ -162,7 +163,7 @@ def test_blender_rgba_scene(tmp_path, head):
     assert (s.images[0][s.masks[0] == 0] == 1.0).all()  # fully transparent pixels show the background
     every = load_scene("nerfstudio", root, splits=["train", "val", "test"])
     assert every.num_images == 31 and every.val_ids == list(range(24, 31))
-    flat = load_scene("nerfstudio", root, use_masks=False, background=[0.0, 0.0, 0.0])
+    flat = load_scene("nerfstudio", root, context=LoaderContext(background=(0.0, 0.0, 0.0)), use_masks=False)
     assert flat.masks is None
     torch.testing.assert_close(flat.images[3], rays_for_views(ref, [3], background=[0, 0, 0])["rgb"].reshape(
         256, 256, 3), atol=1.5 / 255, rtol=0)

@@ -13,16 +13,18 @@ from nerfart_plugin.data import h3ds, llff, nerfstudio, selfie  # noqa: F401  (r
 from nerfart_plugin.data.rays import ndc_rays, pixel_rays, rays_for_views
 
 
-def load_scene(kind: str, path: Any, **opts: Any) -> Scene:
+def load_scene(kind: str, path: Any, cfg: Any = None, context: Any = None, **options: Any) -> Scene:
     """Load a scene with the loader registered as ``data``/``kind``.
 
-    Common options: ``resolution`` (long image side in pixels; images resized with
-    antialiasing, K scaled exactly), ``holdout_every`` (default 8: ``val_ids =
-    ids[::8]``), ``use_masks`` (default True). See each loader for the rest.
+    ``cfg``: the loader's typed settings (its ``Config``, or a mapping), ``options`` on top of them, checked
+    (an unknown option is a ConfigError naming the valid ones); ``context``: a
+    :class:`~nerfart_plugin.data.loader.LoaderContext` (background, cache folder). Every loader takes
+    ``resolution`` (long image side in pixels; antialiased resize, K scaled exactly), ``holdout_every``
+    (default 8: ``val_ids = ids[::8]``) and ``use_masks`` (default True); see each loader's ``Config``.
     """
     from nerfart_plugin import registry
 
-    return registry.get("data", kind)(path, **opts)
+    return registry.get("data", kind)(path, cfg, context, **options)
 
 
 __all__ = ["Scene", "load_scene", "pixel_rays", "ndc_rays", "rays_for_views"]

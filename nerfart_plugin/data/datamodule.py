@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "assets" / "head"
 
 #: keys of the data config the datamodule reads itself; every other key goes to the loader
-_DM_KEYS = {"kind", "name", "path", "ndc", "background_color", "subject", "_target_"}
+_DM_KEYS = {"kind", "name", "path", "ndc", "background_color", "subject", "cache_root", "_target_"}
 _NAMED_COLORS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
@@ -54,9 +54,10 @@ class SceneDataModule:
 
     Config keys: ``kind`` ("h3ds"), ``path`` (None: the shipped default head scene, h3ds only),
     ``ndc`` (None = auto: true for forward-facing scenes), ``background_color`` ([r, g, b] in [0, 1],
-    white | black, or None = no compositing; default white), ``subject`` (for the stylization);
-    every other key (``resolution``, ``holdout_every``, ``use_masks``, ``factor``, ``cache_root``, ...)
-    goes to the loader.
+    white | black, or None = no compositing; default white), ``subject`` (for the stylization),
+    ``cache_root`` (the loaders' cache folder; the pipeline: ``<output_root>/cache``); every other key
+    (``resolution``, ``holdout_every``, ``use_masks``, ``factor``, ...) is a setting of the loader's ``Config``
+    (checked: an unknown one is a ConfigError).
     """
 
     def __init__(self, cfg: Optional[dict] = None, **overrides: Any) -> None:
@@ -76,6 +77,7 @@ class SceneDataModule:
             bg = _NAMED_COLORS[bg]
         self.background = None if bg is None else tuple(float(x) for x in bg)
         self.loader_opts = {k: v for k, v in cfg.items() if k not in _DM_KEYS}
+        self.cache_root = Path(cfg["cache_root"]) if cfg.get("cache_root") else None
         self.scene: Optional[Scene] = None
         self.train_rays: Optional[dict] = None
 
@@ -96,14 +98,11 @@ class SceneDataModule:
     def load(self) -> Scene:
         """Load (once) and return the scene."""
         if self.scene is None:
-            from nerfart_plugin import registry
             from nerfart_plugin.data import load_scene
-            from nerfart_plugin.schema import init_parameters
+            from nerfart_plugin.data.loader import LoaderContext
 
-            opts = dict(self.loader_opts)
-            if "background" in init_parameters(registry.get("data", self.kind)):
-                opts["background"] = self.background  # loaders that composite RGBA images (nerfstudio)
-            self.scene = load_scene(self.kind, self.path, **opts)
+            context = LoaderContext(background=self.background, cache_root=self.cache_root)
+            self.scene = load_scene(self.kind, self.path, context=context, **self.loader_opts)
         return self.scene
 
     def setup(self, stage: Optional[str] = None) -> None:

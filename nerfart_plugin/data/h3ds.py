@@ -28,8 +28,10 @@ from typing import Any, Optional
 
 import numpy as np
 
-from nerfart_plugin.config_types import HoldoutEvery, Resolution
+from nerfart_plugin.components import configured
+from nerfart_plugin.config_types import Setting
 from nerfart_plugin.data.common import make_scene, require_dir
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     choose_resolution,
     find_mask_folder,
@@ -134,37 +136,27 @@ def read_cameras_npz(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.stack(Ks), np.stack(c2ws), np.stack(scales)
 
 
-@register("data", "h3ds")
-def load_h3ds(
-    path: Any,
-    resolution: Resolution = "auto",
-    holdout_every: HoldoutEvery = 8,
-    use_masks: bool = True,
-    cameras_file: Optional[str] = None,
-    **unused: Any,
-) -> Scene:
-    """Load an IDR/VolSDF/NeuS scene folder.
+class H3DSConfig(LoaderConfig):
+    """``data=h3ds``: an IDR / VolSDF / NeuS scene folder."""
 
-    Args:
-        path: scene folder (``images/`` or ``image/``, ``cameras.npz`` or
-            ``cameras_sphere.npz``, optional ``matte/``/``mask/``).
-        resolution: ``"auto"`` (long side min(native, 480): the 256x256 head stays
-            native), None (native) or the long image side in pixels
-            (:func:`~nerfart_plugin.data.images.choose_resolution`).
-        holdout_every: every n-th view goes to ``val_ids``.
-        use_masks: load mattes when present (-> capture "object").
-        cameras_file: which npz to use (default: ``cameras.npz``, else
-            ``cameras_sphere.npz``).
+    cameras_file: Optional[str] = Setting(
+        None, description="the cameras npz inside the folder; null: cameras.npz, else cameras_sphere.npz")
+
+
+@register("data", "h3ds")
+@configured(H3DSConfig)
+def load_h3ds(path: Any, cfg: H3DSConfig, context: Optional[LoaderContext] = None) -> Scene:
+    """Load an IDR/VolSDF/NeuS scene folder: ``images/`` or ``image/``, ``cameras.npz`` or
+    ``cameras_sphere.npz``, optional ``matte/``/``mask/`` (settings: :class:`H3DSConfig`; "auto" resolution
+    keeps the 256x256 head native, see :func:`~nerfart_plugin.data.images.choose_resolution`).
 
     Returns:
         a validated :class:`Scene`.
     """
-    if unused:
-        log.debug("h3ds loader ignores options %s", sorted(unused))
     root = require_dir(path)
     notes: list[str] = []
-    if cameras_file is not None:
-        cam_path = root / cameras_file
+    if cfg.cameras_file is not None:
+        cam_path = root / cfg.cameras_file
         if not cam_path.is_file():
             raise DataError(f"Camera file {cam_path} not found: fix data.cameras_file (have: {list(CAMERA_FILES)}).")
     else:
@@ -184,7 +176,7 @@ def load_h3ds(
             "paired with the i-th image in sorted order, so the counts must agree: remove the images without "
             "cameras (or regenerate the cameras file for all images)."
         )
-    long_side = choose_resolution(resolution, image_size(image_paths[0]), notes)
+    long_side = choose_resolution(cfg.resolution, image_size(image_paths[0]), notes)
     images, (w0, h0), (w1, h1) = read_image_set(image_paths, long_side)
     sx, sy = w1 / w0, h1 / h0
     if (w1, h1) != (w0, h0):
@@ -195,14 +187,14 @@ def load_h3ds(
     masks = None
     mask_paths: list[Path] = []
     mask_dir = find_mask_folder(root)
-    if use_masks and mask_dir is not None:
+    if cfg.use_masks and mask_dir is not None:
         mask_paths = match_masks(image_paths, list_images(mask_dir, notes), notes)
         masks, (mw, mh), _ = read_image_set(mask_paths, long_side, gray=True, what="matte")
         if (mw, mh) != (w0, h0):
             raise DataError(
                 f"Mattes in {mask_dir} are {mw}x{mh} but images are {w0}x{h0}: resize the mattes to the image size."
             )
-    elif use_masks:
+    elif cfg.use_masks:
         notes.append("no matte/ or mask/ folder: loading without masks")
     capture, reason = detect_capture(c2w, masks)
     layout = f"views from {image_dir.name}/" + (f", mattes from {mask_dir.name}/" if mask_paths else "")
@@ -210,5 +202,5 @@ def load_h3ds(
     return make_scene(  # no depth bounds: the unit sphere (from scale_mat) around each camera
         images=images, masks=masks, c2w=c2w, K=Ks, names=[p.name for p in image_paths],
         normalization=np.linalg.inv(scales[0]), capture=capture, source=root, notes=notes,
-        hash_paths=[cam_path, *image_paths, *mask_paths], holdout_every=holdout_every,
-        opts=dict(kind="h3ds", size=(w1, h1), use_masks=use_masks, cameras=cam_path.name))
+        hash_paths=[cam_path, *image_paths, *mask_paths], holdout_every=cfg.holdout_every,
+        opts=dict(kind="h3ds", size=(w1, h1), use_masks=cfg.use_masks, cameras=cam_path.name))

@@ -27,8 +27,10 @@ from typing import Annotated, Any, Optional
 
 import numpy as np
 
-from nerfart_plugin.config_types import Float, HoldoutEvery, Int, Limits, Resolution
+from nerfart_plugin.components import configured
+from nerfart_plugin.config_types import Float, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     choose_resolution,
     find_mask_folder,
@@ -142,37 +144,30 @@ def _image_folder(root: Path, factor: Optional[int], notes: list[str]) -> tuple[
     )
 
 
-@register("data", "llff")
-def load_llff(
-    path: Any,
-    factor: Optional[Annotated[Int, Limits(ge=1, le=64)]] = 8,
-    resolution: Resolution = "auto",
-    holdout_every: HoldoutEvery = 8,
-    use_masks: bool = True,
-    bd_factor: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.75,
-    capture: Optional[CaptureType] = None,
-    **unused: Any,
-) -> Scene:
-    """Load an LLFF scene.
+class LLFFConfig(LoaderConfig):
+    """``data=llff``: an LLFF scene folder (``poses_bounds.npy`` and ``images_<factor>/``)."""
 
-    Args:
-        path: scene folder with ``poses_bounds.npy`` and ``images_<factor>/``.
-        factor: which downscaled folder (``images_8`` by default); hwf is rescaled by
-            (image size / hwf size).
-        resolution: ``"auto"`` or None: the native size of ``images_<factor>/``;
-            an integer: further resize (long side, pixels).
-        holdout_every: every n-th view goes to ``val_ids``.
-        use_masks: load ``matte/`` when present.
-        bd_factor: LLFF's near-bound margin for forward-facing scenes.
-        capture: force "forward_facing" / "unbounded" / "object" instead of detecting.
-    """
-    if unused:
-        log.debug("llff loader ignores options %s", sorted(unused))
+    factor: Optional[Annotated[Int, Limits(ge=1, le=64)]] = Setting(
+        8, description="which downscaled folder images_<factor>/ to read (hwf rescaled to its image size); "
+        "null: images/")
+    resolution: Resolution = Setting(
+        "auto", description="auto or null: the native size of images_<factor>/; N: further resize to long side N px")
+    bd_factor: Annotated[Float, Limits(gt=0.0, le=10.0)] = Setting(
+        0.75, description="LLFF's near-bound margin for forward-facing scenes")
+    capture: Optional[CaptureType] = Setting(
+        None, description="force object | forward_facing | unbounded instead of detecting it")
+
+
+@register("data", "llff")
+@configured(LLFFConfig)
+def load_llff(path: Any, cfg: LLFFConfig, context: Optional[LoaderContext] = None) -> Scene:
+    """Load an LLFF scene folder with ``poses_bounds.npy`` and ``images_<factor>/`` (settings: :class:`LLFFConfig`)."""
+    capture = cfg.capture  # null: detected below
     root = require_dir(path)
     notes: list[str] = []
     pb_path = root / "poses_bounds.npy"
     pb = read_poses_bounds(pb_path)
-    image_paths, extra_factor = _image_folder(root, factor, notes)
+    image_paths, extra_factor = _image_folder(root, cfg.factor, notes)
     if len(image_paths) != len(pb.c2w):
         raise DataError(
             f"{pb_path} has {len(pb.c2w)} poses but {image_paths[0].parent} has {len(image_paths)} images; pose i "
@@ -182,7 +177,7 @@ def load_llff(
     w_img, h_img = image_size(image_paths[0])
     if extra_factor:
         w_img, h_img = int(round(w_img / extra_factor)), int(round(h_img / extra_factor))
-    long_side = choose_resolution(resolution, (w_img, h_img), notes, cap=None)
+    long_side = choose_resolution(cfg.resolution, (w_img, h_img), notes, cap=None)
     if extra_factor and long_side is None:
         long_side = max(w_img, h_img)
     images, (w0, h0), (w1, h1) = read_image_set(image_paths, long_side)
@@ -201,7 +196,7 @@ def load_llff(
     )
     masks, mask_paths = None, []
     mask_dir = find_mask_folder(root)
-    if use_masks and mask_dir is not None:
+    if cfg.use_masks and mask_dir is not None:
         mask_paths = match_masks(image_paths, list_images(mask_dir, notes), notes)
         masks, _, _ = read_image_set(mask_paths, None, gray=True, what="matte")
         import torch
@@ -215,9 +210,9 @@ def load_llff(
     else:
         reason = "set by the capture option"
     if capture == "forward_facing":
-        T = forward_facing_normalization(pb.c2w, pb.bounds, bd_factor)
+        T = forward_facing_normalization(pb.c2w, pb.bounds, cfg.bd_factor)
         notes.append(
-            f"capture=forward_facing ({reason}); LLFF normalization: near bound -> {1 / bd_factor:.3f}, recentred "
+            f"capture=forward_facing ({reason}); LLFF normalization: near bound -> {1 / cfg.bd_factor:.3f}, recentred "
             "(mean camera at origin looking along -z); render with data.ndc=true (ndc_rays near_plane=1, t in [0,1])"
         )
     else:
@@ -227,6 +222,6 @@ def load_llff(
     return make_scene(
         images=images, masks=masks, c2w=c2w, K=K, names=[p.name for p in image_paths], normalization=T,
         capture=capture, source=root, notes=notes, hash_paths=[pb_path, *image_paths, *mask_paths],
-        bounds=pb.bounds, holdout_every=holdout_every,
-        opts=dict(kind="llff", factor=factor, size=(w1, h1), use_masks=use_masks, bd_factor=bd_factor,
+        bounds=pb.bounds, holdout_every=cfg.holdout_every,
+        opts=dict(kind="llff", factor=cfg.factor, size=(w1, h1), use_masks=cfg.use_masks, bd_factor=cfg.bd_factor,
                   capture=capture))

@@ -66,7 +66,10 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
+from nerfart_plugin.components import configured
+from nerfart_plugin.config_types import HoldoutEvery, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     IMAGE_EXTS,
     choose_resolution,
@@ -79,7 +82,7 @@ from nerfart_plugin.data.images import (
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, similarity, unit_sphere_from_cameras
-from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, opencv_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.registry import register
@@ -514,44 +517,35 @@ def _background(background: Optional[Sequence[float]]) -> tuple[float, float, fl
 
 
 # --------------------------------------------------------------------------- loader
-@register("data", "nerfstudio")
-def load_nerfstudio(
-    path: Any,
-    resolution: Any = "auto",
-    holdout_every: int = 8,
-    use_masks: bool = True,
-    splits: Sequence[str] = ("train", "val"),
-    background: Optional[Sequence[float]] = (1.0, 1.0, 1.0),
-    capture: Optional[str] = None,
-    **unused: Any,
-) -> Scene:
-    """Load a ``transforms.json`` scene (nerfstudio, instant-ngp, Blender synthetic; see module doc).
+class NerfstudioConfig(LoaderConfig):
+    """``data=nerfstudio``: a ``transforms.json`` scene (nerfstudio, instant-ngp, Blender synthetic)."""
 
-    Args:
-        path: the scene folder (``transforms.json`` or ``transforms_{train,val,test}.json``)
-            or a transforms file.
-        resolution: ``"auto"`` (long side min(native, 480)), None (native) or the long side in pixels.
-        holdout_every: every n-th view to ``val_ids`` when the files define no split.
-        use_masks: masks from ``mask_path`` or the images' alpha (-> capture "object").
-        splits: which Blender split files to load (val and test frames become ``val_ids``).
-        background: colour RGBA images are composited on (the datamodule passes its
-            background, i.e. ``render.background_color`` in the pipeline; None: white).
-        capture: force the capture type instead of detecting it.
-    """
-    if unused:
-        log.debug("nerfstudio loader ignores options %s", sorted(unused))
-    if capture not in (None, "object", "forward_facing", "unbounded"):
-        raise ConfigError(f"data.capture={capture!r} is not valid: use null (detect), object, forward_facing or "
-                          "unbounded.")
+    holdout_every: HoldoutEvery = Setting(
+        8, description="every n-th view is held out for evaluation when the files define no split (0: none)")
+    use_masks: bool = Setting(True, description="masks from each frame's mask_path or the images' alpha")
+    splits: list[str] = Setting(
+        ["train", "val"], description="which Blender split files to load (val and test frames are held out); "
+        "[train, val, test] for all")
+    capture: Optional[CaptureType] = Setting(
+        None, description="force object | forward_facing | unbounded instead of detecting it")
+
+
+@register("data", "nerfstudio")
+@configured(NerfstudioConfig)
+def load_nerfstudio(path: Any, cfg: NerfstudioConfig, context: Optional[LoaderContext] = None) -> Scene:
+    """Load a ``transforms.json`` scene: ``path`` is the scene folder (``transforms.json`` or
+    ``transforms_{train,val,test}.json``) or a transforms file (see the module doc; settings:
+    :class:`NerfstudioConfig`; RGBA images are composited on ``context.background``, None: white)."""
+    capture = cfg.capture  # null: detected below
     src = Path(path).expanduser() if path is not None else None
     root = src if src is not None and src.is_file() else require_dir(path)
     notes: list[str] = []
-    files = find_transforms(root, [str(s) for s in splits])
+    files = find_transforms(root, [str(s) for s in cfg.splits])
     frames, meta = parse_frames(files, notes)
     W0, H0 = _common_size(frames)
-    W1, H1 = target_size(W0, H0, choose_resolution(resolution, (W0, H0), notes))
-    bg = _background(background)
-    mask_source = _mask_source(frames, use_masks, root)
+    W1, H1 = target_size(W0, H0, choose_resolution(cfg.resolution, (W0, H0), notes))
+    bg = _background((context or LoaderContext()).background)
+    mask_source = _mask_source(frames, cfg.use_masks, root)
     images, masks = read_frames(frames, (W1, H1), mask_source, bg, notes)
     if mask_source == "alpha":
         notes.append("RGBA images: alpha is the mask; colours composited on the background by the datamodule")
@@ -568,7 +562,7 @@ def load_nerfstudio(
         images=images, masks=masks, c2w=c2w, K=K, bounds=bounds,
         names=[_relative(f.image, root) for f in frames], normalization=T, capture=capture, source=root, notes=notes,
         hash_paths=sorted({p for _, p in files} | {f.image for f in frames} | {f.mask for f in frames if f.mask}),
-        opts=dict(kind="nerfstudio", size=(W1, H1), masks=mask_source, splits=list(splits), capture=capture,
+        opts=dict(kind="nerfstudio", size=(W1, H1), masks=mask_source, splits=list(cfg.splits), capture=capture,
                   background=bg if mask_source != "alpha" else None),
-        holdout_every=holdout_every, split=split,
+        holdout_every=cfg.holdout_every, split=split,
     )

@@ -33,9 +33,11 @@ from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 
-from nerfart_plugin.config_types import Float, Fraction, HoldoutEvery, Int, Limits, Resolution
+from nerfart_plugin.components import configured
+from nerfart_plugin.config_types import Float, Fraction, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     choose_resolution,
     find_mask_folder,
@@ -373,67 +375,57 @@ def selfie_cache_meta(scene: Scene) -> Optional[dict]:
 
 #: COLMAP camera models of the shared camera (distortion of the radial/OpenCV ones is removed)
 
-@register("data", "selfie")
-def load_selfie(
-    path: Any,
-    resolution: Resolution = "auto",
-    holdout_every: HoldoutEvery = 8,
-    use_masks: bool = True,
-    fps: Annotated[Float, Limits(gt=0.0, le=1000.0)] = 15.0,
-    max_frames: Annotated[Int, Limits(ge=3, le=100_000)] = 100,
-    frame_long_side: Optional[Annotated[Int, Limits(ge=16, le=16384)]] = 480,
-    matcher: Literal["sequential", "exhaustive"] = "sequential",
-    camera_model: str = "SIMPLE_RADIAL",
-    min_registered: Fraction = 0.5,
-    cache_dir: Optional[Any] = None,
-    cache_root: Optional[Any] = None,
-    capture: Optional[CaptureType] = None,
-    sfm_seed: Annotated[Int, Limits(ge=0, le=2**31 - 1)] = 0,
-    sfm_threads: Annotated[Int, Limits(ge=1, le=1024)] = 1,
-    **unused: Any,
-) -> Scene:
-    """Load a selfie video / frame folder / COLMAP scene folder (see module doc).
+class SelfieConfig(LoaderConfig):
+    """``data=selfie``: a selfie video, a folder of frames, or a COLMAP scene folder (``images/`` + ``sparse/0``)."""
 
-    Args:
-        path: video file, folder of frames (``folder/`` or ``folder/images/``), or a
-            folder with ``images/`` and ``sparse/0``.
-        resolution: long side of the returned images: ``"auto"`` (min(native, 480):
-            the paper's 270x480 for 540x960 frames, video frames stay at
-            ``frame_long_side``), None (the frames' size) or pixels.
-        fps, max_frames, frame_long_side: frame sampling (paper: 15 fps, <= 100, 480).
-        matcher: "sequential" (video order) or "exhaustive".
-        camera_model: COLMAP camera model of the single shared camera; distortion is
-            removed from the returned images (K stays the pinhole part).
-        min_registered: minimal fraction of frames SfM must register.
-        cache_dir: where ``<name>_<hash>/`` caches go: None (``<cache_root>/selfie``),
-            ``"beside_data"`` (``nerfart_cache/`` next to the input) or a folder
-            (:func:`cache_base`).
-        cache_root: the project's cache folder (the pipeline: ``<output_root>/cache``).
-        capture: force the capture type instead of detecting it.
-        sfm_seed: seed of every random choice in COLMAP (RANSAC, mapper).
-        sfm_threads: threads of each SfM step; 1 (default) makes the cameras a
-            function of the frames (see :func:`run_sfm`), more is faster but not
-            reproducible.
-    """
-    if unused:
-        log.debug("selfie loader ignores options %s", sorted(unused))
+    resolution: Resolution = Setting(
+        "auto", description="long side of the returned images: auto: min(native, 480) (the paper's 270x480 for "
+        "540x960 frames; video frames stay at frame_long_side); null: the frames' size; N: pixels")
+    fps: Annotated[Float, Limits(gt=0.0, le=1000.0)] = Setting(15.0, description="frames sampled per second of video")
+    max_frames: Annotated[Int, Limits(ge=3, le=100_000)] = Setting(100, description="at most this many frames")
+    frame_long_side: Optional[Annotated[Int, Limits(ge=16, le=16384)]] = Setting(
+        480, description="long side of the extracted video frames (pixels); null: the video's own")
+    matcher: Literal["sequential", "exhaustive"] = Setting(
+        "sequential", description="COLMAP feature matching: sequential (video order) | exhaustive")
+    camera_model: str = Setting(
+        "SIMPLE_RADIAL", description="COLMAP model of the one shared camera; distortion is removed from the images")
+    min_registered: Fraction = Setting(0.5, description="the least share of frames SfM must register")
+    cache_dir: Optional[Any] = Setting(
+        None, description="where the frames and SfM cache goes: null: <output_root>/cache/selfie; beside_data: "
+        "nerfart_cache/ next to the input; or a folder")
+    capture: Optional[CaptureType] = Setting(
+        None, description="force object | forward_facing | unbounded instead of detecting it")
+    sfm_seed: Annotated[Int, Limits(ge=0, le=2**31 - 1)] = Setting(
+        0, description="seed of every random choice in COLMAP (RANSAC, mapper)")
+    sfm_threads: Annotated[Int, Limits(ge=1, le=1024)] = Setting(
+        1, description="threads of each SfM step; 1 makes the cameras a function of the frames, more is faster "
+        "but not reproducible")
+
+
+@register("data", "selfie")
+@configured(SelfieConfig)
+def load_selfie(path: Any, cfg: SelfieConfig, context: Optional[LoaderContext] = None) -> Scene:
+    """Load a selfie video, a folder of frames (``folder/`` or ``folder/images/``) or a folder with ``images/`` and
+    ``sparse/0`` (see the module doc; settings: :class:`SelfieConfig`; ``context.cache_root``: the project's cache
+    folder, the pipeline's ``<output_root>/cache``)."""
+    capture = cfg.capture  # null: detected below
     if path is None:
         raise DataError("No input given for data=selfie: set data.path=/path/to/video.mp4 (or a folder of frames).")
-    check_sfm_camera_model(camera_model)
+    check_sfm_camera_model(cfg.camera_model)
     root = Path(path).expanduser()
     if not root.is_file():
         root = require_dir(root, "selfie folder")
     notes: list[str] = []
     image_dir, model_dir, files, mask_dir = _prepare(
-        root, fps, max_frames, frame_long_side, matcher, camera_model, cache_dir, notes,
-        sfm_seed=int(sfm_seed), sfm_threads=int(sfm_threads), cache_root=cache_root,
+        root, cfg.fps, cfg.max_frames, cfg.frame_long_side, cfg.matcher, cfg.camera_model, cfg.cache_dir, notes,
+        sfm_seed=int(cfg.sfm_seed), sfm_threads=int(cfg.sfm_threads), cache_root=(context or LoaderContext()).cache_root,
     )
     model: ColmapModel = read_colmap_model(model_dir)
     frames = list_images(image_dir)
     n_total, n_reg = len(frames), len(model.names)
-    if n_reg < max(3, min_registered * n_total):
+    if n_reg < max(3, cfg.min_registered * n_total):
         raise DataError(
-            f"COLMAP registered only {n_reg} of {n_total} frames from {root} (need >= {min_registered:.0%}); "
+            f"COLMAP registered only {n_reg} of {n_total} frames from {root} (need >= {cfg.min_registered:.0%}); "
             f"{SFM_HINT}. Delete {model_dir.parent.parent} to redo SfM."
         )
     if n_reg < n_total:
@@ -449,7 +441,7 @@ def load_selfie(
     W0, H0 = int(model.sizes[0][0]), int(model.sizes[0][1])
     if any(tuple(s) != (W0, H0) for s in model.sizes):
         raise DataError(f"COLMAP model {model_dir} has cameras of different sizes; use one image size for all frames.")
-    W1, H1 = target_size(W0, H0, choose_resolution(resolution, (W0, H0), notes))
+    W1, H1 = target_size(W0, H0, choose_resolution(cfg.resolution, (W0, H0), notes))
     sx, sy = W1 / W0, H1 / H0
     maps = _undistortion(model, model_dir, notes)
     imgs = []
@@ -460,7 +452,7 @@ def load_selfie(
         imgs.append(remap(arr, maps[i]))
     images = np.stack(imgs)
     masks, mask_paths = None, []
-    if use_masks and mask_dir is not None:
+    if cfg.use_masks and mask_dir is not None:
         mask_paths = match_masks(paths, list_images(mask_dir, notes), notes)
         masks = np.stack([remap(read_image(p, (W0, H0), gray=True), maps[i]) for i, p in enumerate(mask_paths)])
     if (W1, H1) != (W0, H0):
@@ -499,4 +491,4 @@ def load_selfie(
     return make_scene(
         images=images, masks=masks, c2w=c2w, K=K, names=model.names, normalization=T, capture=capture,
         source=root, notes=notes, hash_paths=[*files, *paths, *mask_paths], bounds=bounds,
-        holdout_every=holdout_every, opts=dict(kind="selfie", size=(W1, H1), use_masks=use_masks, capture=capture))
+        holdout_every=cfg.holdout_every, opts=dict(kind="selfie", size=(W1, H1), use_masks=cfg.use_masks, capture=capture))
