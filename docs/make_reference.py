@@ -19,10 +19,10 @@ def settings_page() -> str:
     lines = ["# Settings reference", "",
              "Every setting of the sections with fixed keys, generated from the typed config "
              "(`nerfart_plugin/schema.py`; `python docs/make_reference.py` rewrites this page). Set any of them on "
-             "the command line (`render.num_samples=64`) or in a config group. The component sections "
-             "(`backbone`, `encoding`, `guidance`) take the settings of the component they name: "
-             "`python -m nerfart_plugin backbone=neus --cfg job` prints them with their defaults; the data loaders' "
-             "settings are listed at the end of this page.", "",
+             "the command line (`render.num_samples=64`) or in a config group. The `guidance` section takes the "
+             "settings of the guide it names: "
+             "`python -m nerfart_plugin guidance=clip --cfg job` prints them with their defaults; the settings of "
+             "each data loader, backbone and encoding are listed at the end of this page.", "",
              "*Cache key*: whether the setting changes results, so that a run with another value is computed "
              "anew (no: it only changes where outputs go, how often a run logs or saves, or memory)."]
     section = None
@@ -37,22 +37,31 @@ def settings_page() -> str:
     return "\n".join(lines + component_lines()) + "\n"
 
 
+#: the component sections whose settings are declared beside each component: (kind, title, what the key picks)
+COMPONENT_KINDS = (("data", "the scene loaders", "`data=<kind>` picks the loader; besides `data.path`, `data.ndc`, "
+                    "`data.background_color` and `data.subject`, each takes the settings below."),
+                   ("backbone", "the fields", "`backbone=<name>` picks the field."),
+                   ("encoding", "the position encodings", "`encoding=<name>` picks the encoding (the view "
+                    "directions' `backbone.dir_encoding` takes the same settings)."))
+
+
 def component_lines() -> list[str]:
-    """One table per data loader (``data=<kind>``), from the typed ``Config`` beside each loader."""
+    """One table per registered loader, backbone and encoding, from the typed ``Config`` beside each."""
     from nerfart_plugin import registry
     from nerfart_plugin.components import config_of
     from nerfart_plugin.schema import settings_rows
 
-    lines = ["", "## `data`: the scene loaders", "",
-             "`data=<kind>` picks the loader; besides `data.path`, `data.ndc`, `data.background_color` and "
-             "`data.subject`, each takes the settings below (declared beside the loader, in its `Config`)."]
-    for kind in registry.names("data"):
-        config = config_of(registry.get("data", kind))
-        lines += ["", f"### `data={kind}`", "", (config.__doc__ or "").strip().replace("``", "`"), "",
-                  "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
-        for key, default, text, cached in settings_rows(config, "data."):
-            cell = text.replace("|", "\\|")
-            lines.append(f"| `{key}` | `{default}` | {cell} | {'yes' if cached else 'no'} |")
+    lines: list[str] = []
+    for kind, title, intro in COMPONENT_KINDS:
+        lines += ["", f"## `{kind}`: {title}", "", f"{intro} Each is declared beside its component, in its `Config`."]
+        for name in registry.names(kind):
+            config = config_of(registry.get(kind, name))
+            doc = (config.__doc__ or registry.get(kind, name).__doc__ or "").strip().split("\n\n")[0]
+            lines += ["", f"### `{kind}={name}`", "", " ".join(doc.split()).replace("``", "`"), "",
+                      "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
+            for key, default, text, cached in settings_rows(config, f"{kind}."):
+                cell = text.replace("|", "\\|")
+                lines.append(f"| `{key}` | `{default}` | {cell} | {'yes' if cached else 'no'} |")
     return lines
 
 

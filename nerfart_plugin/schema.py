@@ -740,29 +740,34 @@ def _mapping(section: str, value: Any) -> tuple[dict, list[Issue]]:
     return {}, [Issue(section, value, "a section of settings (" + section + ".key=value)")]
 
 
-EncodingScale = Annotated[Float, Field(gt=0.0, le=100.0)]
+@functools.lru_cache(maxsize=None)
+def named_model(kind: str, name: str) -> type[BaseModel]:
+    """The pydantic model of a component section (``encoding``, ``backbone``): ``name`` + the ``Config``
+    declared beside the registered component."""
+    from nerfart_plugin import registry
+    from nerfart_plugin.components import config_of
+
+    config = config_of(registry.get(kind, name))
+    return create_model(f"{config.__qualname__.replace('.', '')}Section", __base__=config, name=(str, ...))
 
 
 def check_encoding(cfg: Any, prefix: str = "encoding") -> tuple[dict, list[Issue]]:
-    """``encoding`` (or a nested one such as ``backbone.dir_encoding``): ``name`` + the class's settings."""
+    """``encoding`` (or a nested one such as ``backbone.dir_encoding``): ``name`` + the encoding's settings."""
     cfg, issues = _mapping(prefix, cfg)
     name = cfg.get("name")
     cls, issues2 = _registered("encoding", name, f"{prefix}.name")
     if cls is None:
         return cfg, issues + issues2
-    model = component_model(cls, frozenset({"bound", "in_dim"}),
-                            (("name", str, ...), ("mlp_lr_scale", EncodingScale, cls.mlp_lr_scale)))
-    return _check(model, cfg, prefix)
+    return _check(named_model("encoding", name), cfg, prefix)
 
 
 def check_backbone(cfg: Any) -> tuple[dict, list[Issue]]:
-    """``backbone``: ``name`` + the field class's settings (``dir_encoding`` checked as an encoding)."""
+    """``backbone``: ``name`` + the field's settings (``dir_encoding`` checked as an encoding)."""
     cfg, issues = _mapping("backbone", cfg)
     cls, issues2 = _registered("backbone", cfg.get("name"), "backbone.name")
     if cls is None:
         return cfg, issues + issues2
-    model = component_model(cls, frozenset({"encoding_cfg", "bound"}), (("name", str, ...),))
-    out, issues = _check(model, cfg, "backbone")
+    out, issues = _check(named_model("backbone", cfg["name"]), cfg, "backbone")
     if isinstance(cfg.get("dir_encoding"), dict):
         enc, more = check_encoding(cfg["dir_encoding"], "backbone.dir_encoding")
         out = {**out, "dir_encoding": enc}

@@ -182,6 +182,25 @@ def test_other_impossible_settings(override, message):
     assert text.startswith(message), text
 
 
+#: cache keys of the component sections as runs made before the typed component configs computed them (commit
+#: b040aa3, constructor reflection): moving a setting's home must not move existing run folders
+COMPONENT_KEYS = {(): "8f4083ed19ee", ("backbone=neus",): "c30e583f41be",
+                  ("backbone=nerf", "encoding=frequency"): "e5dc05d8ad24", ("data=llff", "data.path=/x"): "3cc1344a7b9f",
+                  ("data=selfie", "data.path=/x"): "a722a84580aa", ("data=nerfstudio", "data.path=/x"): "2a97a4dd1ee4",
+                  ("encoding.resolution=[64,128]",): "5034919e46b8",
+                  ("backbone.hidden_dim=32", "data.resolution=64", "backbone.dir_encoding.degree=3"): "b453a102a338"}
+
+
+@pytest.mark.parametrize("overrides", list(COMPONENT_KEYS))
+def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
+    from nerfart_plugin.runs import config_hash
+
+    run, _ = schema.parse_config(cfg(*overrides))
+    sections = {"backbone": run.backbone, "encoding": run.encoding,
+                "data": schema.component_result_settings("data", run.data)}
+    assert config_hash(sections) == COMPONENT_KEYS[overrides]
+
+
 def test_interpolated_keys_are_reported_with_their_source():
     text = error_of("render.sdf_grad_samples=0")  # backbone.grad_samples is ${render.sdf_grad_samples}
     assert "render.sdf_grad_samples=0: a number in (0, 1] (reconstruct.lambda_eikonal=0" in text
@@ -287,16 +306,10 @@ def _component_leaves(variant: tuple[str, ...]) -> list[str]:
 
 
 def _section_model(section: str, values: dict) -> type[BaseModel]:
-    from nerfart_plugin import registry
 
     if section == "data":
         return schema.data_model(values["kind"])
-    if section == "backbone":
-        return schema.component_model(registry.get("backbone", values["name"]), frozenset({"encoding_cfg", "bound"}),
-                                      (("name", str, ...),))
-    cls = registry.get("encoding", values["name"])
-    return schema.component_model(cls, frozenset({"bound", "in_dim"}),
-                                  (("name", str, ...), ("mlp_lr_scale", float, cls.mlp_lr_scale)))
+    return schema.named_model(section, values["name"])
 
 
 #: every option of every component group is among the variants (test_property_test_covers_every_section)
@@ -428,21 +441,21 @@ _NONE_MEANS = {"dir_encoding": {"name": "sh", "degree": 4}}
 @pytest.mark.parametrize("group", ["backbone", "encoding"])
 def test_component_yaml_repeats_the_constructor_defaults(group: str) -> None:
     """conf/<group>/<name>.yaml lists a component's settings for --cfg job; every value it states is the
-    constructor's own default (or wires a render.* knob), so the Python API and the CLI build one model."""
+    default of the component's Config (or wires a render.* knob), so the Python API and the CLI build one model."""
     import yaml
 
     from nerfart_plugin import registry
+    from nerfart_plugin.components import config_of
 
     for path in sorted((config_dir() / group).glob("*.yaml")):
         values = yaml.safe_load(path.read_text())
-        cls = registry.get(group, values["name"])
-        params = schema.init_parameters(cls)
+        fields = config_of(registry.get(group, values["name"])).model_fields
         for key, value in values.items():
             if key == "name" or (isinstance(value, str) and value.startswith("${")):
                 continue
-            default = params[key][1] if key in params else getattr(cls, key, ...)
+            default = fields[key].default
             default = _NONE_MEANS.get(key, default) if default is None else default
-            assert value == default, f"{path.name}: {key}={value!r} but the constructor's default is {default!r}"
+            assert value == default, f"{path.name}: {key}={value!r} but the Config's default is {default!r}"
 
 
 def test_explicit_source_checkpoint_key_covers_its_content_and_the_render_settings(tmp_path):

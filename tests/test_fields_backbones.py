@@ -163,7 +163,7 @@ def test_grid_levels_halve_the_side_down_from_the_finest() -> None:
 def test_bad_configs_raise_config_error() -> None:
     with pytest.raises(ConfigError, match="Valid backbone names"):
         build_field({"name": "nope"}, ENCODINGS["frequency"])
-    with pytest.raises(ConfigError, match="bad config keys"):
+    with pytest.raises(ConfigError, match=r"backbone.hiden_dim=3: unknown setting; did you mean backbone.hidden_dim\?"):
         build_field({"name": "nerf", "hiden_dim": 3}, ENCODINGS["frequency"])
     with pytest.raises(ConfigError, match="grad_type"):
         build_field({"name": "neus", "grad_type": "magic"}, ENCODINGS["frequency"])

@@ -34,8 +34,8 @@ def occupancy_scores_opacity(backbone_cfg: dict[str, Any]) -> bool:
 
 
 def build_field(backbone_cfg: dict[str, Any], encoding_cfg: Optional[dict[str, Any]] = None, bound: float = 1.0) -> Field:
-    """Build a backbone (``backbone_cfg["name"]`` in nerf|volsdf|neus, other keys are its config)
-    on an encoding (``encoding_cfg["name"]`` in frequency|grid, other keys its config)."""
+    """Build a backbone (``backbone_cfg["name"]`` in nerf|volsdf|neus, other keys its settings, checked by its
+    ``Config``) on an encoding (``encoding_cfg["name"]`` in frequency|grid, other keys its settings)."""
     from nerfart_plugin import registry
 
     cfg = dict(backbone_cfg or {})
@@ -43,9 +43,4 @@ def build_field(backbone_cfg: dict[str, Any], encoding_cfg: Optional[dict[str, A
     if name is None:
         raise ConfigError("backbone config has no 'name'; set backbone.name to one of: " + ", ".join(registry.names("backbone")))
     cls = registry.get("backbone", str(name))
-    try:
-        return cls(encoding_cfg=dict(encoding_cfg) if encoding_cfg else None, bound=bound, **cfg)
-    except TypeError as exc:
-        raise ConfigError(
-            f"backbone {name!r}: bad config keys {sorted(cfg)} ({exc}); see {cls.__module__}.{cls.__name__} docstring."
-        ) from exc
+    return cls(cfg, encoding_cfg=dict(encoding_cfg) if encoding_cfg else None, bound=bound)

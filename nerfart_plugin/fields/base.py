@@ -11,15 +11,15 @@ view directions d [N,3] to colour and geometry. The renderer calls ``query``,
 from __future__ import annotations
 
 import math
-from typing import Annotated, Any, Iterator, Literal, Optional
+from typing import Annotated, Any, ClassVar, Iterator, Literal, Optional
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from nerfart_plugin.config_types import Depth, Fraction, Limits, PositiveFloat, Width
-from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.components import ComponentConfig
+from nerfart_plugin.config_types import Depth, Fraction, Limits, PositiveFloat, Setting, Width
 from nerfart_plugin.fields.encodings import Encoding, build_encoding
 
 __all__ = ["Field", "NeuralField", "SDFField", "make_mlp", "GeometricInitMLP", "SharpSoftplus"]
@@ -239,24 +239,34 @@ class Field(nn.Module):
 class NeuralField(Field):
     """A field of MLPs on an encoding (the base of every shipped backbone).
 
-    Common config (every backbone): ``feature_dim`` (geometry feature size fed
-    to the colour net, default 15), ``hidden_dim`` (64), ``n_layers`` (hidden
-    layers of the geometry net, 2), ``color_hidden_dim`` (64), ``color_layers``
-    (2), ``dir_encoding`` (dict, default ``{"name": "sh", "degree": 4}``).
+    Its settings (every backbone): :class:`NeuralField.Config`; ``encoding_cfg`` and ``bound`` come from the
+    run (``encoding`` section, the field box).
     """
 
-    def __init__(
-        self,
-        encoding_cfg: Optional[dict] = None,
-        bound: float = 1.0,
-        feature_dim: Width = 15,
-        hidden_dim: Width = 64,
-        n_layers: Depth = 2,
-        color_hidden_dim: Width = 64,
-        color_layers: Depth = 2,
-        dir_encoding: Optional[dict] = None,
-    ) -> None:
+    class Config(ComponentConfig):
+        """The settings every backbone has (``backbone.<key>``)."""
+
+        section: ClassVar[str] = "backbone"
+
+        feature_dim: Width = Setting(15, description="geometry features fed to the colour net")
+        hidden_dim: Width = Setting(64, description="width of the geometry net")
+        n_layers: Depth = Setting(2, description="hidden layers of the geometry net")
+        color_hidden_dim: Width = Setting(64, description="width of the colour net")
+        color_layers: Depth = Setting(2, description="hidden layers of the colour net")
+        dir_encoding: Optional[dict[str, Any]] = Setting(
+            None, description="the view-direction encoding (an encoding section: name + settings); null: "
+            "{name: sh, degree: 4}")
+
+    #: this backbone's settings (:class:`Config`, checked)
+    cfg: "NeuralField.Config"
+
+    def __init__(self, cfg: Optional[Any] = None, *, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 **options: Any) -> None:
+        c = type(self).Config.build(cfg, **options)
+        feature_dim, hidden_dim, n_layers = c.feature_dim, c.hidden_dim, c.n_layers
+        color_hidden_dim, color_layers, dir_encoding = c.color_hidden_dim, c.color_layers, c.dir_encoding
         super().__init__()
+        self.cfg = c
         self.bound = float(bound)
         self.encoding: Encoding = build_encoding(encoding_cfg, bound)
         self.dir_encoding: Encoding = build_encoding(dir_encoding or {"name": "sh", "degree": 4})
@@ -331,18 +341,28 @@ class SDFField(NeuralField):
     #: whether ``alpha`` reads ``out["gradient"]`` (then every sample needs its gradient)
     alpha_needs_gradient: bool = False
 
-    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
-                 radius: Optional[Annotated[PositiveFloat, Limits(le=100.0)]] = 0.8, refine_init: bool = True,
-                 grad_type: Literal["auto", "analytic", "finite_difference"] = "auto",
-                 fd_eps: Optional[Annotated[PositiveFloat, Limits(le=1.0)]] = None,
-                 color_normal: bool = True, grad_samples: Fraction = 1.0, n_layers: Depth = 1, **kw: Any) -> None:
-        super().__init__(encoding_cfg, bound, n_layers=n_layers, **kw)
-        if grad_type not in ("auto", "analytic", "finite_difference"):
-            raise ConfigError(f"backbone.grad_type={grad_type!r}; use 'auto', 'analytic' or 'finite_difference'.")
-        if not 0.0 < float(grad_samples) <= 1.0:
-            raise ConfigError(f"backbone.grad_samples={grad_samples!r}; use a fraction in (0, 1].")
-        self.color_normal = bool(color_normal)
-        self.grad_samples = float(grad_samples)
+    class Config(NeuralField.Config):
+        n_layers: Depth = Setting(1, description="hidden layers of the geometry net")
+        radius: Optional[Annotated[PositiveFloat, Limits(le=100.0)]] = Setting(
+            0.8, description="radius of the initial sphere (geometric initialisation); null: half the field box")
+        refine_init: bool = Setting(True, description="refine the initial network to a sphere before training")
+        grad_type: Literal["auto", "analytic", "finite_difference"] = Setting(
+            "auto", description="how d sdf / dx is taken: analytic (autograd) | finite_difference (tetrahedron); "
+            "auto: finite_difference on the grid encoding, analytic otherwise")
+        fd_eps: Optional[Annotated[PositiveFloat, Limits(le=1.0)]] = Setting(
+            None, description="finite-difference step; null: 1e-3 x the field box")
+        color_normal: bool = Setting(True, description="the colour net sees the normal (IDR/NeuS); false: faster")
+        grad_samples: Fraction = Setting(
+            1.0, description="with color_normal=false and an alpha without gradients: the share of samples whose "
+            "gradient is taken for the eikonal term")
+
+    def __init__(self, cfg: Optional[Any] = None, *, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 **options: Any) -> None:
+        super().__init__(cfg, encoding_cfg=encoding_cfg, bound=bound, **options)
+        c = self.cfg
+        grad_type, fd_eps, radius = c.grad_type, c.fd_eps, c.radius
+        self.color_normal = bool(c.color_normal)
+        self.grad_samples = float(c.grad_samples)
         if grad_type == "auto":
             grad_type = "finite_difference" if self.encoding.slow_double_backward else "analytic"
         self.grad_type = grad_type
@@ -350,7 +370,7 @@ class SDFField(NeuralField):
         self.register_buffer("_tetra", torch.tensor(self._TETRA), persistent=False)
         self.radius = float(radius) if radius is not None else 0.5 * self.bound
         self.geo_net = GeometricInitMLP(self.encoding.n_output_dims, self.hidden_dim, self.n_layers, self.feature_dim,
-                                        self.radius, refine_init=refine_init)
+                                        self.radius, refine_init=c.refine_init)
         color_in = self.feature_dim + 3 * int(self.color_normal) + self.dir_encoding.n_output_dims
         self.color_net = make_mlp(color_in, self.color_hidden_dim, 3, self.color_layers)
 

@@ -8,14 +8,15 @@ Position encodings take points x [N,3] in world units inside [-bound, bound]^3
 from __future__ import annotations
 
 import math
-from typing import Annotated, Literal, Optional, Union
+from typing import Annotated, Any, ClassVar, Literal, Optional, Union
 
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from nerfart_plugin.config_types import Float, Int, Limits
+from nerfart_plugin.components import ComponentConfig
+from nerfart_plugin.config_types import Float, Int, Limits, Setting
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.registry import register
 
@@ -31,12 +32,30 @@ class Encoding(nn.Module):
     high-frequency positional encoding diverge at the rate that suits MLPs on a grid.
     """
 
+    class Config(ComponentConfig):
+        """The settings every encoding has (``encoding.<key>``)."""
+
+        section: ClassVar[str] = "encoding"
+
+        mlp_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = Setting(
+            1.0, description="multiplies the learning rate of the MLPs fed by this encoding (reconstruct.lr_mlp, "
+            "stylize.lr_mlp)")
+
     n_input_dims: int = 3
     n_output_dims: int
-    mlp_lr_scale: float = 1.0
+    #: this encoding's settings (:class:`Config`, checked)
+    cfg: "Encoding.Config"
     #: its backward has no fast backward of its own (``grid_sample`` on CPU): SDF fields on it take
     #: gradients by finite differences (``grad_type=auto``)
     slow_double_backward: bool = False
+
+    def __init__(self, cfg: Optional[Any], options: dict[str, Any]) -> None:
+        super().__init__()
+        self.cfg = type(self).Config.build(cfg, **options)
+
+    @property
+    def mlp_lr_scale(self) -> float:
+        return float(self.cfg.mlp_lr_scale)
 
     def regularizers(self) -> dict[str, Tensor]:
         """Parameter regularizers (0-dim tensors, weighted by the encoding's own settings), named as in
@@ -52,24 +71,25 @@ class Encoding(nn.Module):
 class FrequencyEncoding(Encoding):
     """NeRF positional encoding ``[x, sin(2^k x), cos(2^k x)]_{k<n_freqs}`` on ``x / bound``.
 
-    Config: ``n_freqs`` (int, default 10; 4 is typical for directions),
-    ``include_input`` (bool, default True). Output dims ``3*(include_input + 2*n_freqs)``.
-    ``mlp_lr_scale`` defaults to 0.33: at the grid's MLP rate (3e-3) a NeuS on 10 frequencies lost
-    its surface and never recovered (BENCHMARKS.md, trade-off); at 1e-3 it trains.
+    Output dims ``3*(include_input + 2*n_freqs)``. ``mlp_lr_scale`` defaults to 0.33: at the grid's MLP rate
+    (3e-3) a NeuS on 10 frequencies lost its surface and never recovered (BENCHMARKS.md, trade-off); at 1e-3
+    it trains.
     """
 
-    mlp_lr_scale: float = 0.33
+    class Config(Encoding.Config):
+        mlp_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = Setting(
+            0.33, description="multiplies the learning rate of the MLPs fed by this encoding (a NeuS on 10 "
+            "frequencies diverges at the grid's MLP rate)")
+        n_freqs: Annotated[Int, Limits(ge=0, le=24)] = Setting(
+            10, description="frequency bands 2^0 .. 2^(n-1) (4 is typical for directions; 2^24 is past float32)")
+        include_input: bool = Setting(True, description="also pass x itself")
 
-    def __init__(self, bound: float = 1.0, n_freqs: Annotated[Int, Limits(ge=0, le=24)] = 10,
-                 include_input: bool = True, in_dim: int = 3) -> None:
-        super().__init__()
-        if not 0 <= n_freqs <= 24:
-            raise ConfigError(f"encoding.n_freqs={n_freqs}: use 0..24 (2^24 is past float32 precision); "
-                              "e.g. 6 or 10.")
+    def __init__(self, cfg: Optional[Any] = None, *, bound: float = 1.0, in_dim: int = 3, **options: Any) -> None:
+        super().__init__(cfg, options)
         self.bound = float(bound)
         self.n_input_dims = in_dim
-        self.n_freqs = int(n_freqs)
-        self.include_input = bool(include_input)
+        self.n_freqs = int(self.cfg.n_freqs)
+        self.include_input = bool(self.cfg.include_input)
         self.register_buffer("freqs", 2.0 ** torch.arange(self.n_freqs, dtype=torch.float32), persistent=False)
         self.n_output_dims = in_dim * (int(self.include_input) + 2 * self.n_freqs)
 
@@ -124,32 +144,33 @@ class TensorVMGridEncoding(Encoding):
     levels concatenated, then optionally projected by a bias-free linear basis
     (TensoRF's "basis matrix") to ``out_features``.
 
-    Config: ``resolution`` (int, list of ints for multi-resolution, or ``auto``,
-    the default: decided per scene by the scene setup, :func:`auto_grid_resolution`,
-    so that a cell spans about ``cell_pixels`` pixels of the training images, default
-    3; built without a scene setup, 128, the rule's floor), ``levels`` (int or ``auto``, the
-    default: with an int or ``auto`` resolution, that side is the finest of ``levels`` levels, each
-    coarser one half the side of the next, :func:`level_sides`; ``auto``: decided per backbone by the
-    scene setup, :data:`AUTO_SDF_LEVELS` for SDF fields, one level for density fields; built without a
-    scene setup, one level), ``n_components`` (int, default 8),
-    ``out_features`` (int or None = no projection, default 32), ``init_std``
-    (default 0.1; planes/lines are N(0, init_std) so products start small but
-    non-zero), ``tv_weight`` (default 0.0: total-variation regularizer returned by
-    ``regularizers()``).
+    Its settings (:class:`TensorVMGridEncoding.Config`): the grid side(s), levels, components, projection,
+    initialisation and total-variation weight; planes and lines start N(0, init_std), so products start small
+    but non-zero; ``regularizers()`` returns the total variation when ``tv_weight`` > 0.
     """
 
-    def __init__(
-        self,
-        bound: float = 1.0,
-        resolution: Union[Literal["auto"], GridSide, Annotated[list[GridSide], Limits(min_length=1, max_length=16)]] = "auto",
-        n_components: Annotated[Int, Limits(ge=1, le=256)] = 8,
-        levels: Union[Literal["auto"], Annotated[Int, Limits(ge=1, le=16)]] = "auto",
-        out_features: Optional[Annotated[Int, Limits(ge=1, le=4096)]] = 32,
-        init_std: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
-        tv_weight: Annotated[Float, Limits(ge=0.0, le=1e6)] = 0.0,
-        cell_pixels: Annotated[Float, Limits(ge=0.25, le=64.0)] = AUTO_CELL_PIXELS,
-    ) -> None:
-        super().__init__()
+    class Config(Encoding.Config):
+        resolution: Union[Literal["auto"], GridSide, Annotated[list[GridSide], Limits(min_length=1, max_length=16)]] = \
+            Setting("auto", description="grid side (the finest level's), or one side per level; auto: decided per "
+                    "scene so that a cell spans about cell_pixels training-image pixels (built without a scene "
+                    "setup: 128)")
+        n_components: Annotated[Int, Limits(ge=1, le=256)] = Setting(8, description="VM components per level")
+        levels: Union[Literal["auto"], Annotated[Int, Limits(ge=1, le=16)]] = Setting(
+            "auto", description="levels, each coarser one half the side of the next; auto: decided per backbone "
+            "(several for SDF fields, one for density fields)")
+        out_features: Optional[Annotated[Int, Limits(ge=1, le=4096)]] = Setting(
+            32, description="features after the bias-free linear basis (TensoRF's basis matrix); null: no projection")
+        init_std: Annotated[Float, Limits(gt=0.0, le=10.0)] = Setting(
+            0.1, description="standard deviation of the initial planes and lines")
+        tv_weight: Annotated[Float, Limits(ge=0.0, le=1e6)] = Setting(
+            0.0, description="weight of the total-variation regularizer of the planes (0: off)")
+        cell_pixels: Annotated[Float, Limits(ge=0.25, le=64.0)] = Setting(
+            AUTO_CELL_PIXELS, description="with resolution=auto: training-image pixels one grid cell spans")
+
+    def __init__(self, cfg: Optional[Any] = None, *, bound: float = 1.0, **options: Any) -> None:
+        super().__init__(cfg, options)
+        c = self.cfg
+        resolution, levels, n_components, out_features = c.resolution, c.levels, c.n_components, c.out_features
         if resolution == "auto":  # built without a scene setup (which decides it and reads cell_pixels): the floor
             resolution = AUTO_GRID_MIN
         if levels == "auto":  # built without a scene setup (which decides it per backbone): one level
@@ -176,10 +197,10 @@ class TensorVMGridEncoding(Encoding):
         self.bound = float(bound)
         self.resolutions = res_list
         self.n_components = int(n_components)
-        self.tv_weight = float(tv_weight)
+        self.tv_weight = float(c.tv_weight)
         C = self.n_components
-        self.planes = nn.ParameterList([nn.Parameter(init_std * torch.randn(3, C, r, r)) for r in res_list])
-        self.lines = nn.ParameterList([nn.Parameter(init_std * torch.randn(3, C, r, 1)) for r in res_list])
+        self.planes = nn.ParameterList([nn.Parameter(c.init_std * torch.randn(3, C, r, r)) for r in res_list])
+        self.lines = nn.ParameterList([nn.Parameter(c.init_std * torch.randn(3, C, r, 1)) for r in res_list])
         raw = 3 * C * len(res_list)
         self.basis = nn.Linear(raw, out_features, bias=False) if out_features else None
         self.n_output_dims = int(out_features) if out_features else raw
@@ -228,13 +249,14 @@ class SHEncoding(Encoding):
     """Real spherical harmonics of unit directions, ``degree`` bands (1..4 -> 1,4,9,16 dims).
 
     Same convention/constants as tiny-cuda-nn's ``SphericalHarmonics`` (degree 4 = 16 coefficients).
-    Config: ``degree`` (default 4).
     """
 
-    def __init__(self, bound: float = 1.0, degree: Annotated[Int, Limits(ge=1, le=4)] = 4) -> None:
-        super().__init__()
-        if not 1 <= degree <= 4:
-            raise ConfigError(f"sh encoding degree must be in 1..4, got {degree}; set dir_encoding.degree=4.")
+    class Config(Encoding.Config):
+        degree: Annotated[Int, Limits(ge=1, le=4)] = Setting(4, description="bands: 1..4 -> 1, 4, 9, 16 features")
+
+    def __init__(self, cfg: Optional[Any] = None, *, bound: float = 1.0, **options: Any) -> None:
+        super().__init__(cfg, options)
+        degree = self.cfg.degree
         self.degree = int(degree)
         self.n_output_dims = self.degree**2
 
@@ -274,12 +296,4 @@ def build_encoding(cfg: dict | None, bound: float = 1.0) -> Encoding:
     if name is None:
         raise ConfigError("encoding config has no 'name'; set encoding.name to one of: " + ", ".join(registry.names("encoding")))
     cls = registry.get("encoding", str(name))
-    scale = cfg.pop("mlp_lr_scale", cls.mlp_lr_scale)
-    if not (isinstance(scale, (int, float)) and scale > 0):
-        raise ConfigError(f"encoding.mlp_lr_scale={scale!r}: use a positive number (1.0 = the configured MLP rate).")
-    try:
-        enc = cls(bound=bound, **cfg)
-        enc.mlp_lr_scale = float(scale)
-        return enc
-    except TypeError as exc:
-        raise ConfigError(f"encoding {name!r}: bad config keys {sorted(cfg)} ({exc}); see {cls.__module__}.{cls.__name__} docstring.") from exc
+    return cls(cfg, bound=bound)

@@ -8,8 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nerfart_plugin.config_types import Float, Limits
-from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.config_types import Float, Limits, Setting
 from nerfart_plugin.fields.base import NeuralField, make_mlp
 from nerfart_plugin.registry import register
 
@@ -46,9 +45,7 @@ def trunc_exp(x: Tensor) -> Tensor:
 class NeRFField(NeuralField):
     """Density field: ``sigma = act(raw + density_bias)``, ``rgb = sigmoid(MLP([feat, SH(d)]))``.
 
-    Config (besides the common ``Field`` keys): ``density_activation``
-    ("trunc_exp" | "softplus", default "trunc_exp"), ``density_bias`` (default
-    -1.0), ``mesh_level`` (density iso-level for meshing, default 10.0).
+    Settings: :class:`NeRFField.Config` (besides the common :class:`NeuralField.Config`).
 
     Init: the geometry net outputs raw ~ 0 at init, so sigma ~ exp(-1) = 0.37
     (trunc_exp) or softplus(-1) = 0.31: a faint uniform fog (over a ray of
@@ -64,21 +61,21 @@ class NeRFField(NeuralField):
     is_sdf = False
     mesh_inside_is_below = False
 
-    def __init__(
-        self,
-        encoding_cfg: Optional[dict] = None,
-        bound: float = 1.0,
-        density_activation: Literal["trunc_exp", "softplus"] = "trunc_exp",
-        density_bias: Annotated[Float, Limits(ge=-100.0, le=100.0)] = -1.0,
-        mesh_level: Annotated[Float, Limits(gt=0.0, le=1e6)] = 10.0,
-        input_xyz: bool = True,
-        **kw: Any,
-    ) -> None:
-        super().__init__(encoding_cfg, bound, **kw)
-        if density_activation not in ("trunc_exp", "softplus"):
-            raise ConfigError(
-                f"backbone nerf: density_activation={density_activation!r}; use 'trunc_exp' or 'softplus'."
-            )
+    class Config(NeuralField.Config):
+        density_activation: Literal["trunc_exp", "softplus"] = Setting(
+            "trunc_exp", description="sigma = act(raw + density_bias): trunc_exp | softplus")
+        density_bias: Annotated[Float, Limits(ge=-100.0, le=100.0)] = Setting(
+            -1.0, description="added to the raw density (a faint uniform fog at initialisation)")
+        mesh_level: Annotated[Float, Limits(gt=0.0, le=1e6)] = Setting(
+            10.0, description="density iso-level of the extracted mesh")
+        input_xyz: bool = Setting(True, description="the geometry net also sees x / bound besides the encoding")
+
+    def __init__(self, cfg: Optional[Any] = None, *, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 **options: Any) -> None:
+        super().__init__(cfg, encoding_cfg=encoding_cfg, bound=bound, **options)
+        c = self.cfg
+        density_activation, density_bias, mesh_level, input_xyz = (c.density_activation, c.density_bias,
+                                                                   c.mesh_level, c.input_xyz)
         self.density_activation = density_activation
         self.density_bias = float(density_bias)
         self.mesh_level = float(mesh_level)

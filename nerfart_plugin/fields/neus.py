@@ -8,10 +8,9 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from nerfart_plugin.config_types import Float, Int, Limits
+from nerfart_plugin.config_types import Float, Int, Limits, Setting
 from nerfart_plugin.fields.base import SDFField
 from nerfart_plugin.registry import register
-from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.rendering.volume import neus_alpha, neus_alpha_sections
 
 __all__ = ["NeuSField"]
@@ -21,37 +20,37 @@ __all__ = ["NeuSField"]
 class NeuSField(SDFField):
     """SDF field rendered with ``neus_alpha``.
 
-    Config (besides the common ``Field`` keys and ``radius``): ``init_variance``
-    (default 0.3; ``inv_s = exp(10 * variance)`` starts at ~20), ``inv_s_max``
-    (default 1e5, clamp of inv_s), ``anneal_steps`` (default 500; 0 = no cos
-    annealing; otherwise the cos-anneal ratio goes linearly 0 -> 1 over the
-    first ``anneal_steps`` steps, driven by ``update_step``), ``alpha_mode``
-    ("gradient", default: the reference code's mid-point estimate from
-    ``dot(d, grad sdf)``; "sections": NeuS Eq. 13 on the SDF at consecutive
-    samples, which needs no gradient, so ``grad_samples < 1`` can skip most of
-    the gradient cost; cos-annealing does not apply), ``variance_lr_scale``
-    (default 0.2: the stored parameter is ``variance / variance_lr_scale``, so
-    Adam moves the variance that many times slower or faster than the other
-    MLP parameters; NeuS trains it at the network rate 5e-4, and at the grid's larger
-    ``lr_mlp`` 0.2 keeps inv_s from sharpening before the shape forms; 1.0: the network rate).
+    Settings: :class:`NeuSField.Config` (besides :class:`SDFField.Config`); the variance is stored as
+    ``variance / variance_lr_scale`` so that Adam moves it that many times slower or faster than the other MLP
+    parameters (NeuS trains it at the network rate 5e-4; at the grid's larger ``lr_mlp`` 0.2 keeps inv_s from
+    sharpening before the shape forms). ``alpha_mode=sections`` needs no gradient, so ``grad_samples < 1`` can
+    skip most of the gradient cost; cos-annealing does not apply to it.
     """
 
-    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
-                 init_variance: Annotated[Float, Limits(ge=-10.0, le=10.0)] = 0.3,
-                 inv_s_max: Annotated[Float, Limits(gt=1.0, le=1e9)] = 1e5,
-                 anneal_steps: Annotated[Int, Limits(ge=0, le=10**9)] = 500,
-                 alpha_mode: Literal["gradient", "sections"] = "gradient",
-                 variance_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = 0.2, **kw: Any) -> None:
-        if alpha_mode not in ("gradient", "sections"):
-            raise ConfigError(f"backbone neus: alpha_mode={alpha_mode!r}; use 'gradient' or 'sections'.")
+    class Config(SDFField.Config):
+        init_variance: Annotated[Float, Limits(ge=-10.0, le=10.0)] = Setting(
+            0.3, description="initial variance: inv_s = exp(10 * variance) starts at about 20")
+        inv_s_max: Annotated[Float, Limits(gt=1.0, le=1e9)] = Setting(1e5, description="clamp of inv_s")
+        anneal_steps: Annotated[Int, Limits(ge=0, le=10**9)] = Setting(
+            500, description="steps of the cos-anneal ratio going 0 -> 1 (0: no annealing)")
+        alpha_mode: Literal["gradient", "sections"] = Setting(
+            "gradient", description="gradient: the reference code's mid-point estimate from dot(d, grad sdf); "
+            "sections: NeuS Eq. 13 on consecutive samples (no gradient needed)")
+        variance_lr_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = Setting(
+            0.2, description="the variance moves this many times as fast as the other MLP parameters")
+
+    def __init__(self, cfg: Optional[Any] = None, *, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 **options: Any) -> None:
+        c = self.Config.build(cfg, **options)
+        alpha_mode, init_variance = c.alpha_mode, c.init_variance
         self.alpha_needs_gradient = alpha_mode == "gradient"
-        super().__init__(encoding_cfg, bound, **kw)
+        super().__init__(c, encoding_cfg=encoding_cfg, bound=bound)
         self.alpha_mode = alpha_mode
         self.alpha_lookahead = 1 if alpha_mode == "sections" else 0  # Eq. 13 reads the next sample's SDF
-        self.variance_lr_scale = float(variance_lr_scale)
+        self.variance_lr_scale = float(c.variance_lr_scale)
         self.variance = nn.Parameter(torch.tensor(float(init_variance) / self.variance_lr_scale))
-        self.inv_s_max = float(inv_s_max)
-        self.anneal_steps = int(anneal_steps)
+        self.inv_s_max = float(c.inv_s_max)
+        self.anneal_steps = int(c.anneal_steps)
         # checkpointed state: a loaded reconstruction renders with the ratio it ended at (1 after
         # annealing), and a stylization continuing from it does not restart the anneal
         self.register_buffer("cos_anneal", torch.tensor(1.0 if self.anneal_steps <= 0 else 0.0))

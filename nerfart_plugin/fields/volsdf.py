@@ -9,7 +9,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from nerfart_plugin.config_types import Float, Limits
+from nerfart_plugin.config_types import Float, Limits, Setting
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.base import SDFField
 from nerfart_plugin.registry import register
@@ -22,9 +22,7 @@ __all__ = ["VolSDFField"]
 class VolSDFField(SDFField):
     """SDF field rendered with ``sigma = volsdf_density(sdf, beta)``.
 
-    Config (besides the common ``Field`` keys and ``radius``): ``beta_init``
-    (default 0.1, world units), ``beta_min`` (default 1e-4: lower bound that
-    keeps 1/beta finite and training stable), ``beta_log_scale`` (default 1.0).
+    Settings: :class:`VolSDFField.Config` (besides :class:`SDFField.Config`).
     ``beta = beta_min + exp(beta_log_scale * b)`` with a learnable ``b`` (a
     geometry parameter): log-parametrized, so an Adam step changes beta by a
     bounded *factor* (~``exp(lr * beta_log_scale)``) whatever its size; with
@@ -32,16 +30,24 @@ class VolSDFField(SDFField):
     from 0.1 to beta_min in ~30 steps, before the geometry had moved.
     """
 
-    def __init__(self, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
-                 beta_init: Annotated[Float, Limits(gt=0.0, le=10.0)] = 0.1,
-                 beta_min: Annotated[Float, Limits(gt=0.0, le=1.0)] = 1e-4,
-                 beta_log_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = 1.0, **kw: Any) -> None:
+    class Config(SDFField.Config):
+        beta_init: Annotated[Float, Limits(gt=0.0, le=10.0)] = Setting(
+            0.1, description="initial beta of the Laplace CDF (world units; must exceed beta_min)")
+        beta_min: Annotated[Float, Limits(gt=0.0, le=1.0)] = Setting(
+            1e-4, description="lower bound of beta: keeps 1/beta finite and training stable")
+        beta_log_scale: Annotated[Float, Limits(gt=0.0, le=100.0)] = Setting(
+            1.0, description="beta = beta_min + exp(beta_log_scale * b) with a learnable b")
+
+    def __init__(self, cfg: Optional[Any] = None, *, encoding_cfg: Optional[dict] = None, bound: float = 1.0,
+                 **options: Any) -> None:
+        c = self.Config.build(cfg, **options)
+        beta_init, beta_min = c.beta_init, c.beta_min
         if not float(beta_init) > float(beta_min):
             raise ConfigError(f"backbone.beta_init={beta_init} must exceed backbone.beta_min={beta_min} "
                               "(beta starts at beta_init and never goes below beta_min).")
-        super().__init__(encoding_cfg, bound, **kw)
+        super().__init__(c, encoding_cfg=encoding_cfg, bound=bound)
         self.beta_min = float(beta_min)
-        self.beta_log_scale = float(beta_log_scale)
+        self.beta_log_scale = float(c.beta_log_scale)
         b0 = math.log(max(float(beta_init) - self.beta_min, 1e-6)) / self.beta_log_scale
         self.beta_param = nn.Parameter(torch.tensor(b0))
 
