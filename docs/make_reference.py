@@ -19,10 +19,9 @@ def settings_page() -> str:
     lines = ["# Settings reference", "",
              "Every setting of the sections with fixed keys, generated from the typed config "
              "(`nerfart_plugin/schema.py`; `python docs/make_reference.py` rewrites this page). Set any of them on "
-             "the command line (`render.num_samples=64`) or in a config group. The `guidance` section takes the "
-             "settings of the guide it names: "
-             "`python -m nerfart_plugin guidance=clip --cfg job` prints them with their defaults; the settings of "
-             "each data loader, backbone and encoding are listed at the end of this page.", "",
+             "the command line (`render.num_samples=64`) or in a config group. The settings of each data loader, "
+             "backbone, encoding, guide and perceptual network are listed at the end of this page; "
+             "`python -m nerfart_plugin backbone=neus --cfg job` prints a composed config with its defaults.", "",
              "*Cache key*: whether the setting changes results, so that a run with another value is computed "
              "anew (no: it only changes where outputs go, how often a run logs or saves, or memory)."]
     section = None
@@ -42,7 +41,12 @@ COMPONENT_KINDS = (("data", "the scene loaders", "`data=<kind>` picks the loader
                     "`data.background_color` and `data.subject`, each takes the settings below."),
                    ("backbone", "the fields", "`backbone=<name>` picks the field."),
                    ("encoding", "the position encodings", "`encoding=<name>` picks the encoding (the view "
-                    "directions' `backbone.dir_encoding` takes the same settings)."))
+                    "directions' `backbone.dir_encoding` takes the same settings)."),
+                   ("guidance", "the guides", "`guidance=<name>` picks the guide; its settings live in "
+                    "`guidance.<name>`, next to the common keys `guidance.allow_random_weights`, "
+                    "`guidance.allow_download` and `guidance.perceptual`."),
+                   ("perceptual", "the feature networks of Eq. 9", "`guidance.perceptual=<name>` picks one "
+                    "(default: the guide's own choice); its settings live in the sub-section named below."))
 
 
 def component_lines() -> list[str]:
@@ -57,9 +61,11 @@ def component_lines() -> list[str]:
         for name in registry.names(kind):
             config = config_of(registry.get(kind, name))
             doc = (config.__doc__ or registry.get(kind, name).__doc__ or "").strip().split("\n\n")[0]
-            lines += ["", f"### `{kind}={name}`", "", " ".join(doc.split()).replace("``", "`"), "",
+            head = f"guidance.perceptual={name}" if kind == "perceptual" else f"{kind}={name}"
+            lines += ["", f"### `{head}`", "", " ".join(doc.split()).replace("``", "`"), "",
                       "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
-            for key, default, text, cached in settings_rows(config, f"{kind}."):
+            prefix = f"{config.section}." if kind in ("guidance", "perceptual") else f"{kind}."
+            for key, default, text, cached in settings_rows(config, prefix):
                 cell = text.replace("|", "\\|")
                 lines.append(f"| `{key}` | `{default}` | {cell} | {'yes' if cached else 'no'} |")
     return lines

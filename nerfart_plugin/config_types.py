@@ -1,12 +1,12 @@
-"""Typed setting annotations shared by the config schema and the component constructors.
+"""Typed setting annotations shared by the config schema and the components' ``Config`` models.
 
-Components built from config (backbones, encodings, data loaders, guidance)
-state the type and valid range of each setting in their constructor signature::
+A component built from config (a backbone, encoding, data loader, guide) states the type, valid range
+and meaning of each setting in the ``Config`` beside it (:mod:`nerfart_plugin.components`)::
 
-    def __init__(self, hidden_dim: Width = 64, grad_samples: Fraction = 1.0, ...)
+    class Config(NeuralField.Config):
+        hidden_dim: Width = Setting(64, description="width of the geometry net")
 
-At run time these are plain ``int`` / ``float`` (``Annotated`` has no effect on a
-call); :mod:`nerfart_plugin.schema` reads them to check a config before any work.
+:mod:`nerfart_plugin.schema` composes them to check a config before any work.
 """
 
 from __future__ import annotations

@@ -9,7 +9,8 @@ Usage::
 
     field = registry.get("backbone", "neus")(**cfg)
 
-Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``. Other
+Kinds used by the project: ``backbone``, ``encoding``, ``data``, ``guidance``, ``perceptual`` (the
+feature networks of Eq. 9). Other
 distributions add components through entry points (:mod:`nerfart_plugin.plugins`).
 """
 
@@ -31,6 +32,7 @@ _PROVIDERS: dict[str, tuple[str, ...]] = {
     "encoding": ("nerfart_plugin.fields",),
     "data": ("nerfart_plugin.data",),
     "guidance": ("nerfart_plugin.guidance", "nerfart_plugin.guidance.imagenet"),
+    "perceptual": ("nerfart_plugin.guidance", "nerfart_plugin.guidance.imagenet"),
 }
 
 

@@ -13,10 +13,10 @@
   listing every violation as ``key=value: what is allowed (how to turn it off)``;
   :func:`parse_config` returns it typed (:class:`RunConfig`).
 * The component sections (``data``, ``backbone``, ``encoding``, ``guidance``) are
-  validated from the constructor of the component they name (registry): the type
-  hints of its signature (:mod:`nerfart_plugin.config_types` carries the ranges) and
-  its parameter names (an unknown key is reported with the closest valid one), so a
-  registered custom component is checked the same way.
+  validated by the ``Config`` declared beside the component they name (registry;
+  :mod:`nerfart_plugin.components`): its fields' types, ranges and meanings (an unknown
+  key is reported with the closest valid one), so a registered custom component is
+  checked the same way.
 * Fields declared with ``changes_results=False`` (how often a run logs, validates or
   saves, chunk sizes that only trade memory, where outputs go) are left out of the
   cache keys of the run folders (:func:`result_settings`); every other setting is in.
@@ -30,7 +30,6 @@ from __future__ import annotations
 import collections.abc
 import difflib
 import functools
-import inspect
 import math
 import types
 import typing
@@ -49,7 +48,7 @@ from nerfart_plugin.errors import ConfigError
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
     "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "check_settings", "parse_config",
-    "component_model", "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
+    "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
 ]
 
 #: samples (rays x samples per ray) of one training step with grad: far beyond any GPU's memory above this
@@ -648,75 +647,7 @@ def issues_from(exc: ValidationError, model: type[BaseModel], data: Any, prefix:
     return out
 
 
-# ---------------------------------------------------------------------- components, from their signatures
-def _pydantic_type(hint: Any) -> Any:
-    """``int``/``float`` -> :data:`Int`/:data:`Float` (finite, not bool), through Optional/Union/Annotated/lists."""
-    if hint is int:
-        return Int
-    if hint is float:
-        return Float
-    origin, args = typing.get_origin(hint), typing.get_args(hint)
-    if origin is Annotated:
-        return Annotated[(_pydantic_type(args[0]), *args[1:])]  # type: ignore[misc]
-    if origin in (Union, types.UnionType):
-        return Union[tuple(_pydantic_type(a) for a in args)]  # type: ignore[return-value]
-    if origin in (list, collections.abc.Sequence) and args:
-        return list[_pydantic_type(args[0])]  # type: ignore[misc]
-    return hint
-
-
-def _own_parameters(fn: Callable) -> tuple[dict[str, tuple[Any, Any]], bool]:
-    """name -> (type, default) of ``fn``'s named parameters, and whether it takes ``**kwargs``."""
-    sig = inspect.signature(fn)
-    try:
-        hints = typing.get_type_hints(fn, include_extras=True)
-    except Exception:  # noqa: BLE001 - unresolvable hints: check names only
-        hints = {}
-    params: dict[str, tuple[Any, Any]] = {}
-    var_kw = False
-    for p in sig.parameters.values():
-        if p.kind is p.VAR_KEYWORD:
-            var_kw = True
-        elif p.kind is not p.VAR_POSITIONAL and p.name != "self":
-            default = ... if p.default is p.empty else p.default
-            tp = hints.get(p.name, Any if default is ... or default is None else type(default))
-            params[p.name] = (_pydantic_type(tp), default)
-    return params, var_kw
-
-
-def init_parameters(obj: Any) -> dict[str, tuple[Any, Any]]:
-    """The settings a component accepts: a function's parameters, or a class's ``__init__`` parameters
-    followed through ``**kwargs`` into its base classes' ``__init__`` (the first one found wins)."""
-    if not isinstance(obj, type):
-        return _own_parameters(obj)[0]
-    params: dict[str, tuple[Any, Any]] = {}
-    for klass in obj.__mro__:
-        init = vars(klass).get("__init__")
-        if init is None:
-            continue
-        own, var_kw = _own_parameters(init)
-        for name, spec in own.items():
-            params.setdefault(name, spec)
-        if not var_kw:
-            break
-    return params
-
-
-@functools.lru_cache(maxsize=None)
-def component_model(obj: Any, exclude: frozenset[str] = frozenset(),
-                    extra: tuple[tuple[str, Any, Any], ...] = ()) -> type[BaseModel]:
-    """A pydantic model of the settings of component ``obj`` (class or function), without ``exclude``,
-    plus ``extra`` fields ``(name, type, default)``; unknown keys refused."""
-    fields: dict[str, Any] = {}
-    for name, (tp, default) in init_parameters(obj).items():
-        if name not in exclude:
-            fields[name] = (tp, default)
-    for name, tp, default in extra:
-        fields[name] = (tp, default)
-    title = getattr(obj, "__name__", "Component")
-    return create_model(f"{title}Settings", __config__=_MODEL_CONFIG, **fields)
-
-
+# ---------------------------------------------------------------------- components, from their Configs
 def _check(model: type[BaseModel], values: dict, prefix: str) -> tuple[dict, list[Issue]]:
     """Validate ``values`` against ``model``: (coerced values that were given, issues)."""
     try:
@@ -776,7 +707,7 @@ def check_backbone(cfg: Any) -> tuple[dict, list[Issue]]:
 
 
 DataBackground = Optional[Union[Color, Literal["white", "black"]]]
-#: the settings of ``data`` that the datamodule reads besides the loader's (one FieldInfo each: component_model caches)
+#: the settings of ``data`` that the datamodule reads besides the loader's (one FieldInfo each: data_model caches)
 DATA_EXTRAS: tuple[tuple[str, Any, Any], ...] = (
     ("kind", str, ...), ("path", Optional[PathText], None),
     ("ndc", Optional[bool], Setting(None, description="NDC rays; null: for forward-facing captures")),
@@ -824,22 +755,22 @@ class GuidanceCommon(BaseModel):
         None, description="Eq. 9 features; null: vgg for clip, edges for toy, imagenet for imagenet")
 
 
-def _guidance_parts() -> dict[str, tuple[Any, frozenset[str]]]:
-    """Sub-section name -> (component, parameters set from the common keys instead)."""
+def guidance_parts() -> dict[str, type[BaseModel]]:
+    """Sub-section key of ``guidance`` -> the ``Config`` declared beside its guide or perceptual network
+    (each Config's ``section`` names its key: ``guidance.clip``, ``guidance.vgg``, ``guidance.lite_perceptual``)."""
     from nerfart_plugin import registry
-    from nerfart_plugin.guidance import CLIPGuidance, EdgePerceptual, Perceptual
-    from nerfart_plugin.guidance.imagenet import LitePerceptual
+    from nerfart_plugin.components import config_of
 
-    common = frozenset({"allow_random_weights", "allow_download", "device"})
-    parts: dict[str, tuple[Any, frozenset[str]]] = {n: (registry.get("guidance", n), common)
-                                                    for n in registry.names("guidance")}
-    parts.update(clip=(CLIPGuidance, common), vgg=(Perceptual, common), edges=(EdgePerceptual, frozenset()),
-                 lite_perceptual=(LitePerceptual, frozenset()))
+    parts: dict[str, type[BaseModel]] = {}
+    for kind in ("guidance", "perceptual"):
+        for name in registry.names(kind):
+            config = config_of(registry.get(kind, name))
+            parts[config.section.split(".", 1)[1]] = config
     return parts
 
 
 def check_guidance(cfg: Any) -> tuple[dict, list[Issue]]:
-    """``guidance``: the common keys, then ``clip``/``vgg``/``edges``/``<name>`` from their constructors."""
+    """``guidance``: the common keys, then each sub-section (``clip``, ``vgg``, ...) by its component's Config."""
     cfg, issues = _mapping("guidance", cfg)
     _, issues2 = _registered("guidance", cfg.get("name"), "guidance.name")
     if issues2:
@@ -848,7 +779,7 @@ def check_guidance(cfg: Any) -> tuple[dict, list[Issue]]:
         common = GuidanceCommon.model_validate(cfg).model_dump(exclude_unset=True)
     except ValidationError as exc:
         return cfg, issues_from(exc, GuidanceCommon, cfg, "guidance")
-    parts = _guidance_parts()
+    parts = guidance_parts()
     out = {k: common[k] for k in _GUIDANCE_KEYS if k in common}
     for key, value in cfg.items():
         if key in _GUIDANCE_KEYS:
@@ -858,8 +789,7 @@ def check_guidance(cfg: Any) -> tuple[dict, list[Issue]]:
             issues.append(unknown_key(f"guidance.{key}", value, [f"guidance.{v}" for v in valid]))
             continue
         sub, more = _mapping(f"guidance.{key}", value)
-        obj, exclude = parts[key]
-        out[key], more2 = _check(component_model(obj, exclude), sub, f"guidance.{key}")
+        out[key], more2 = _check(parts[key], sub, f"guidance.{key}")
         issues += more + more2
     return out, issues
 

@@ -115,13 +115,13 @@ def test_reconstruction_verdict_judges_the_final_figure() -> None:
 def test_paper_resolution_times_both_precisions() -> None:
     """The precision table of part 1: the floor and the perceptual network in auto and in float32, and the
     networks are left in their configured precision."""
-    from nerfart_plugin.guidance import Perceptual, build_guidance
+    from nerfart_plugin.guidance import Perceptual, WeightsPolicy, build_guidance
     from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
 
     mod = _load("paper_resolution")
     g = build_guidance({"name": "clip", "allow_random_weights": True, "allow_download": False,
                         "clip": {"pretrained": None, "model_overrides": TINY_TEST_OVERRIDES}})
-    vgg = Perceptual(weights=None, allow_random_weights=True, layers=["relu1_2"])
+    vgg = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), layers=["relu1_2"])
     calls: list[str] = []
     costs = mod.precision_costs(g, vgg, lambda: calls.append(g.precision), 16, 16, 1)
     assert calls == ["fp32", "fp32"]  # the auto floor is the one part 1 measured: only fp32 here (warm-up + run)

@@ -189,6 +189,14 @@ COMPONENT_KEYS = {(): "8f4083ed19ee", ("backbone=neus",): "c30e583f41be",
                   ("data=selfie", "data.path=/x"): "a722a84580aa", ("data=nerfstudio", "data.path=/x"): "2a97a4dd1ee4",
                   ("encoding.resolution=[64,128]",): "5034919e46b8",
                   ("backbone.hidden_dim=32", "data.resolution=64", "backbone.dir_encoding.degree=3"): "b453a102a338"}
+#: the same for the guidance section (its keys were read from the guides' and perceptual networks' constructors)
+GUIDANCE_KEYS = {(): "f3b25190bc95", ("guidance=toy",): "03c3829bbda7", ("guidance=imagenet",): "6900ee4525fb",
+                 ("guidance=imagenet", "guidance.lite_perceptual.stages=[1,2]", "+guidance.lite_perceptual.input_size=160"):
+                     "0fcc7e7f7609",
+                 ("guidance.vgg.layers=[relu1_2]", "guidance.clip.precision=fp32", "guidance.perceptual=edges",
+                  "+guidance.edges.num_scales=2"): "8936c9704913",
+                 ("guidance=toy", "guidance.toy.num_structure=4"): "04b1d6bd44b7",
+                 ("guidance=imagenet", "guidance.imagenet.source_top_k=3"): "5139ce4198df"}
 
 
 @pytest.mark.parametrize("overrides", list(COMPONENT_KEYS))
@@ -199,6 +207,14 @@ def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tupl
     sections = {"backbone": run.backbone, "encoding": run.encoding,
                 "data": schema.component_result_settings("data", run.data)}
     assert config_hash(sections) == COMPONENT_KEYS[overrides]
+
+
+@pytest.mark.parametrize("overrides", list(GUIDANCE_KEYS))
+def test_the_guidance_section_keeps_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
+    from nerfart_plugin.runs import config_hash
+
+    run, _ = schema.parse_config(cfg(*overrides))
+    assert config_hash({"guidance": run.guidance}) == GUIDANCE_KEYS[overrides]
 
 
 def test_interpolated_keys_are_reported_with_their_source():
@@ -299,9 +315,9 @@ def _component_leaves(variant: tuple[str, ...]) -> list[str]:
         keys += [f"{section}.{k}" for k in model.model_fields]
     keys += [f"backbone.dir_encoding.{k}" for k in c["backbone"]["dir_encoding"]]
     keys += [f"guidance.{k}" for k in schema.GuidanceCommon.model_fields]
-    for part, (obj, exclude) in schema._guidance_parts().items():
+    for part, config in schema.guidance_parts().items():
         if part in c["guidance"]:
-            keys += [f"guidance.{part}.{k}" for k in schema.component_model(obj, exclude).model_fields]
+            keys += [f"guidance.{part}.{k}" for k in config.model_fields]
     return keys
 
 

@@ -7,6 +7,7 @@ import logging
 import pytest
 import torch
 
+from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import CLIPGuidance, build_guidance
 from nerfart_plugin.guidance import weights as wts
@@ -253,7 +254,7 @@ def test_real_default_without_cache_dir(no_network) -> None:
 def test_download_allowed_but_offline(monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
     monkeypatch.setattr(wts, "host_reachable", lambda *a, **k: False)
     with pytest.raises(WeightsMissingError, match="not reachable"):
-        CLIPGuidance(pretrained="openai", cache_dir=str(tmp_path), allow_download=True)
+        CLIPGuidance(pretrained="openai", cache_dir=str(tmp_path), policy=WeightsPolicy(allow_download=True))
 
 
 def test_missing_local_file_and_bad_tag(no_network, tmp_path) -> None:
@@ -285,7 +286,7 @@ def test_a_file_that_is_not_clip_weights_gets_an_error_naming_it(no_network, tmp
 
 def test_random_fallback_when_allowed(no_network, tmp_path) -> None:
     g = CLIPGuidance(
-        pretrained="openai", cache_dir=str(tmp_path), allow_random_weights=True, model_overrides=TINY_TEST_OVERRIDES
+        pretrained="openai", cache_dir=str(tmp_path), policy=WeightsPolicy(allow_random_weights=True), model_overrides=TINY_TEST_OVERRIDES
     )
     assert g.is_real is False
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin import losses
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import EdgePerceptual, Perceptual, build_perceptual
@@ -25,11 +26,11 @@ def test_vgg_random_feature_shapes_and_truncation() -> None:
 
 
 def test_vgg_custom_layers() -> None:
-    p = Perceptual(weights=None, layers=["relu1_1", "relu2_1"], allow_random_weights=True)
+    p = Perceptual(weights=None, layers=["relu1_1", "relu2_1"], policy=WeightsPolicy(allow_random_weights=True))
     assert len(p.features_net) == 7
     assert [f.shape[1] for f in p.features(torch.rand(1, 3, 16, 16))] == [64, 128]
     with pytest.raises(ConfigError, match="relu9_9"):
-        Perceptual(weights=None, layers=["relu9_9"], allow_random_weights=True)
+        Perceptual(weights=None, layers=["relu9_9"], policy=WeightsPolicy(allow_random_weights=True))
 
 
 def test_vgg_missing_weights(no_network, monkeypatch: pytest.MonkeyPatch, tmp_path) -> None:
@@ -75,8 +76,8 @@ def test_vgg_bf16_matches_fp32_loss_and_image_gradient(delta: float) -> None:
     and a changed view (a stylization step's edit, large and small) keeps its value within 2% and its image
     gradient within cosine 0.99 of fp32, and an unchanged view scores exactly 0 with a zero gradient."""
     torch.manual_seed(0)
-    fp32 = Perceptual(weights=None, allow_random_weights=True, precision="fp32")
-    low = Perceptual(weights=None, allow_random_weights=True, precision="bf16")
+    fp32 = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="fp32")
+    low = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="bf16")
     low.load_state_dict(fp32.state_dict())
     src = torch.rand(1, 3, 64, 64)
     edit = (src + delta * torch.randn(1, 3, 8, 8).repeat_interleave(8, -1).repeat_interleave(8, -2)).clamp(0, 1)
@@ -98,7 +99,7 @@ def test_vgg_fp32_stays_fp32_under_an_outer_autocast() -> None:
     """guidance.vgg.precision=fp32 inside a step run under trainer.precision=bf16-mixed: the resize and the
     trunk run in float32 (the same features as outside the autocast)."""
     torch.manual_seed(0)
-    p = Perceptual(weights=None, allow_random_weights=True, precision="fp32", max_size=48)
+    p = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="fp32", max_size=48)
     x = torch.rand(1, 3, 64, 80)
     with torch.no_grad():
         ref = p.features(x)
@@ -110,7 +111,7 @@ def test_vgg_fp32_stays_fp32_under_an_outer_autocast() -> None:
 
 def test_vgg_precision_errors() -> None:
     with pytest.raises(ConfigError, match="guidance.vgg.precision"):
-        Perceptual(weights=None, allow_random_weights=True, precision="int8")
-    p = Perceptual(weights=None, allow_random_weights=True, precision="fp16")
+        Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="int8")
+    p = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="fp16")
     with pytest.raises(ConfigError, match="fp16 needs a CUDA"):
         p.features(torch.rand(1, 3, 16, 16))

@@ -6,7 +6,8 @@ verification guide: a real ImageNet classifier standing in for CLIP; needs the
 ``imagenet`` extra, imported on first use). Build from config with :func:`build_guidance`
 and :func:`build_perceptual`.
 
-Config (dict or OmegaConf) keys and defaults::
+Each guide and perceptual network declares its settings beside it (``Config``, whose ``section`` names
+its sub-section); the section's common keys become one :class:`WeightsPolicy`. Keys and defaults::
 
     name: clip                    # clip | toy | imagenet
     allow_random_weights: false   # tests only: random CLIP/VGG weights
@@ -26,9 +27,8 @@ from typing import Any
 from torch import nn
 
 from nerfart_plugin import registry
-from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", "toy")
-from nerfart_plugin.guidance.base import Guidance
+from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
 from nerfart_plugin.guidance.prompts import (
@@ -57,6 +57,7 @@ __all__ = [
     "random_patches",
     "build_guidance",
     "build_perceptual",
+    "WeightsPolicy",
 ]
 
 
@@ -68,41 +69,26 @@ def _common(cfg: Any) -> tuple[Any, dict[str, Any]]:
     return section(GuidanceCommon, c, prefix="guidance"), c
 
 
+def settings_key(component: Any) -> str:
+    """The key of the ``guidance`` section that holds ``component``'s settings (``clip`` for ``guidance.clip``)."""
+    from nerfart_plugin.components import config_of
+
+    return config_of(component).section.split(".", 1)[1]
+
+
 def build_guidance(cfg: Any) -> Guidance:
-    """Build the guidance encoder named ``cfg["name"]`` (see module docstring for keys)."""
+    """Build the guide named ``cfg["name"]`` from its sub-section (``guidance.<name>``, checked by its ``Config``)
+    and the section's weights policy."""
     common, c = _common(cfg)
     cls = registry.get("guidance", common.name)  # ConfigError listing valid names
-    if cls is CLIPGuidance:
-        return CLIPGuidance(allow_random_weights=common.allow_random_weights, allow_download=common.allow_download,
-                            **dict(c.get("clip") or {}))
-    sub = dict(c.get(common.name) or {})
-    try:
-        return cls(**sub)
-    except TypeError as exc:
-        raise ConfigError(f"guidance.{common.name} has invalid keys {sorted(sub)}: {exc}") from exc
+    return cls(c.get(settings_key(cls)), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
 
 
 def build_perceptual(cfg: Any) -> nn.Module:
-    """Perceptual feature extractor for Eq. 9: :class:`Perceptual` (VGG16) or the toy
-    :class:`EdgePerceptual` (default for ``name: toy``). Both expose
-    ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
+    """The feature network of Eq. 9 (registry kind ``perceptual``: ``vgg`` :class:`Perceptual`, ``edges``
+    :class:`EdgePerceptual`, ``imagenet`` Lite0's first stages): ``guidance.perceptual``, else the guide's
+    ``default_perceptual``. Each exposes ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
     common, c = _common(cfg)
-    kind = common.perceptual or {"toy": "edges", "imagenet": "imagenet"}.get(common.name, "vgg")
-    if kind == "edges":
-        return EdgePerceptual(**dict(c.get("edges") or {}))
-    if kind == "imagenet":
-        from nerfart_plugin.guidance.imagenet import LitePerceptual
-
-        sub = dict(c.get("lite_perceptual") or {})
-        try:
-            return LitePerceptual(**{k: (tuple(v) if k == "stages" else v) for k, v in sub.items()})
-        except TypeError as exc:
-            raise ConfigError(f"guidance.lite_perceptual has invalid keys {sorted(sub)}: {exc}") from exc
-    if kind != "vgg":
-        raise ConfigError(f"guidance.perceptual={kind!r}; use vgg, edges or imagenet")
-    sub = dict(c.get("vgg") or {})
-    try:
-        return Perceptual(allow_random_weights=common.allow_random_weights, allow_download=common.allow_download,
-                          **sub)
-    except TypeError as exc:
-        raise ConfigError(f"guidance.vgg has invalid keys {sorted(sub)}: {exc}") from exc
+    kind = common.perceptual or registry.get("guidance", common.name).default_perceptual
+    cls = registry.get("perceptual", kind)
+    return cls(c.get(settings_key(cls)), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))

@@ -8,11 +8,27 @@ from __future__ import annotations
 
 import abc
 import logging
+from dataclasses import dataclass
+from typing import Optional
 
 import torch
 from torch import Tensor, nn
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WeightsPolicy:
+    """What a guide or perceptual network may do about its weights (the ``guidance`` section's common keys),
+    handed to every one of them alike; those without downloadable weights ignore it.
+
+    Attributes:
+        allow_random_weights: permit random weights (tests only: outputs are stamped as not stylized).
+        allow_download: permit network downloads; None: the environment variable NERFART_ALLOW_DOWNLOAD.
+    """
+
+    allow_random_weights: bool = False
+    allow_download: Optional[bool] = None
 
 
 class Guidance(nn.Module, abc.ABC):
@@ -34,6 +50,9 @@ class Guidance(nn.Module, abc.ABC):
     stamp: str | None = None
     input_size: int = 224
     embed_dim: int = 0
+    #: the perceptual network (registry kind ``perceptual``) Eq. 9 uses with this guide unless
+    #: ``guidance.perceptual`` says otherwise
+    default_perceptual: str = "vgg"
 
     def __init__(self) -> None:
         super().__init__()

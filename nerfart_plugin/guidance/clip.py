@@ -31,15 +31,17 @@ import contextlib
 import logging
 import os
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal, Optional
 
 import kornia
 import torch
 from torch import Tensor
 
+from nerfart_plugin.components import ComponentConfig
+from nerfart_plugin.config_types import Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
-from nerfart_plugin.guidance.base import Guidance
+from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.precision import LowPrecisionWeights, Precision, check_precision, compute_dtype
 from nerfart_plugin.registry import register
 
@@ -173,51 +175,50 @@ def _is_torchscript_archive(path: str) -> bool:
 
 @register("guidance", "clip")
 class CLIPGuidance(Guidance):
-    """Frozen open_clip model as :class:`Guidance`.
+    """Frozen open_clip model as :class:`Guidance`; settings: :class:`CLIPGuidance.Config`.
 
-    Args:
-        model: open_clip architecture name (``open_clip.list_models()``), paper: "ViT-B-32".
-        pretrained: open_clip tag (paper: "openai"), a local checkpoint path, or
-            None for random weights (needs ``allow_random_weights``).
-        cache_dir: weights cache folder (default: HF hub cache / ~/.cache/clip).
-        allow_random_weights: permit random weights (pretrained=None, or as a
-            fallback when the weights are missing). Loud warning, ``is_real=False``.
-        allow_download: permit network downloads (None -> env NERFART_ALLOW_DOWNLOAD).
-        quick_gelu: activation override; None = the tag's setting (OpenAI weights
-            need QuickGELU), for local files True iff the file is an OpenAI
-            TorchScript archive or its name contains "openai".
-        resize_mode: "squash" (default, whole image resized to the input size)
-            or "shortest" (CLIP's shortest-side resize + centre crop).
-        model_overrides: extra keyword overrides of the open_clip model config
-            (e.g. :data:`TINY_TEST_OVERRIDES`).
-        precision: image-encoder arithmetic: "fp32", "bf16" (autocast), "fp16"
-            (autocast; CUDA only) or "auto" (default): fp16 on CUDA, as OpenAI's
-            CLIP runs there, bf16 on CPUs with native bf16 (AVX512-BF16/AMX),
-            else fp32. Weights and text embeddings stay fp32 (the image tower's matmul
-            weights get one bf16/fp16 copy, cast once: ``guidance.precision.LowPrecisionWeights``);
-            embeddings stay within cosine 0.99995 and image gradients within cosine
-            0.9998 of fp32 (speed: ``BENCHMARKS.md``, stylization section). On CPU bf16
-            images are encoded one at a time: with batches > 1, torch 2.14's CPU bf16
-            ``bmm`` path is far slower.
-        device: where to put the model (default CPU; ``.to()`` works as usual).
+    ``pretrained`` None (or "none", "random") builds random weights, which need
+    ``policy.allow_random_weights`` (loud warning, ``is_real=False``). ``quick_gelu`` None: the tag's setting,
+    for local files True iff the file is an OpenAI TorchScript archive or its name contains "openai".
+    ``precision``: weights and text embeddings stay fp32 (the image tower's matmul weights get one bf16/fp16
+    copy, cast once: ``guidance.precision.LowPrecisionWeights``); embeddings stay within cosine 0.99995 and
+    image gradients within cosine 0.9998 of fp32 (speed: ``BENCHMARKS.md``, stylization section). On CPU bf16
+    images are encoded one at a time: with batches > 1, torch 2.14's CPU bf16 ``bmm`` path is far slower.
+    ``device``: where to put the model (default CPU; ``.to()`` works as usual).
     """
 
     name = "clip"
 
-    def __init__(
-        self,
-        model: str = "ViT-B-32",
-        pretrained: str | None = "openai",
-        cache_dir: str | None = None,
-        allow_random_weights: bool = False,
-        allow_download: bool | None = None,
-        quick_gelu: bool | None = None,
-        resize_mode: Literal["squash", "shortest"] = "squash",
-        model_overrides: dict[str, Any] | None = None,
-        precision: Precision = "auto",
-        device: str | torch.device | None = None,
-    ) -> None:
+    class Config(ComponentConfig):
+        section: ClassVar[str] = "guidance.clip"
+
+        model: str = Setting("ViT-B-32", description="open_clip architecture (open_clip.list_models()); paper: ViT-B-32")
+        pretrained: Optional[str] = Setting(
+            "openai", description="open_clip weights tag (paper: openai) or a local checkpoint file")
+        cache_dir: Optional[str] = Setting(None, description="weights cache folder; null: the HF hub / ~/.cache/clip")
+        quick_gelu: Optional[bool] = Setting(
+            None, description="QuickGELU activation; null: the tag's setting (OpenAI weights need it)")
+        resize_mode: Literal["squash", "shortest"] = Setting(
+            "squash", description="squash: the whole view to the input size; shortest: CLIP's resize + centre crop")
+        model_overrides: Optional[dict[str, Any]] = Setting(
+            None, description="extra keyword overrides of the open_clip model config (tests)")
+        precision: Precision = Setting(
+            "auto", description="image-encoder arithmetic: fp32 | bf16 | fp16 (CUDA) | auto (fp16 on CUDA, bf16 on "
+            "CPUs with native bf16, else fp32)")
+
+    #: the perceptual network (``guidance.perceptual``) used with this guide unless set
+    default_perceptual = "vgg"
+
+    def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None,
+                 device: str | torch.device | None = None, **options: Any) -> None:
+        c = self.Config.build(cfg, **options)
+        policy = policy or WeightsPolicy()
+        model, pretrained, cache_dir, quick_gelu = (c.model, c.pretrained, c.cache_dir,
+                                                    c.quick_gelu)
+        resize_mode, model_overrides, precision = c.resize_mode, c.model_overrides, c.precision
+        allow_random_weights, allow_download = policy.allow_random_weights, policy.allow_download
         super().__init__()
+        self.cfg = c
         import open_clip
 
         if model not in open_clip.list_models():

