@@ -14,7 +14,7 @@ ERRORS_PAGE = ROOT / "docs" / "reference" / "errors.md"
 
 
 def settings_page() -> str:
-    from nerfart_plugin.schema import settings_rows
+    from nerfart_plugin.config_help import settings_rows
 
     lines = ["# Settings reference", "",
              "Every setting of the sections with fixed keys, generated from the typed config "
@@ -53,7 +53,7 @@ def component_lines() -> list[str]:
     """One table per registered loader, backbone and encoding, from the typed ``Config`` beside each."""
     from nerfart_plugin import registry
     from nerfart_plugin.components import config_of
-    from nerfart_plugin.schema import settings_rows
+    from nerfart_plugin.config_help import settings_rows
 
     lines: list[str] = []
     for kind, title, intro in COMPONENT_KINDS:

@@ -47,7 +47,7 @@ class ComponentConfig(BaseModel):
         try:
             return cls.model_validate(values)
         except ValidationError as exc:
-            from nerfart_plugin.schema import issues_from, raise_issues
+            from nerfart_plugin.config_issues import issues_from, raise_issues
 
             raise_issues(issues_from(exc, cls, values, cls.section))
             raise  # pragma: no cover - raise_issues raised

@@ -15,9 +15,9 @@ def config_dir() -> Path:
     A checkout (``<repo>/conf``) wins over an installed copy so that edits to a
     checkout take effect; a wheel installs the same folder as the package
     ``nerfart_plugin.conf``. Also registers the schema's defaults in Hydra's ConfigStore
-    (:func:`nerfart_plugin.schema.register_schema`), which ``config.yaml`` composes first.
+    (:func:`nerfart_plugin.config_help.register_schema`), which ``config.yaml`` composes first.
     """
-    from nerfart_plugin.schema import register_schema
+    from nerfart_plugin.config_help import register_schema
 
     register_schema()
     checkout = Path(__file__).resolve().parents[1] / "conf"

@@ -11,13 +11,14 @@ and meaning of each setting in the ``Config`` beside it (:mod:`nerfart_plugin.co
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import BeforeValidator, Field
 from pydantic.fields import FieldInfo
 
 __all__ = [
-    "Setting", "changes_results", "Limits", "Int", "Float", "Width", "Depth", "Fraction", "PositiveFloat", "Resolution", "Seed",
+    "Color", "PathText", "Setting", "changes_results", "Limits", "Int", "Float", "Width", "Depth", "Fraction", "PositiveFloat", "Resolution", "Seed",
     "HoldoutEvery", "MAX_WIDTH", "MAX_DEPTH",
 ]
 
@@ -86,3 +87,8 @@ Resolution = Optional[Union[Literal["auto"], Annotated[Int, Field(ge=8, le=8192)
 Seed = Annotated[Int, Field(ge=0, le=2**32 - 1)]
 #: every n-th view is held out for validation; 0: none (all views train)
 HoldoutEvery = Annotated[Int, Field(ge=0, le=10_000)]
+
+#: an RGB colour, each channel in [0, 1]
+Color = Annotated[list[Annotated[Float, Field(ge=0.0, le=1.0)]], Field(min_length=3, max_length=3)]
+#: a file or folder path as typed
+PathText = Union[str, Path]

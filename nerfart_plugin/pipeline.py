@@ -28,7 +28,8 @@ from omegaconf import DictConfig
 
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.factories import SceneContext, Style, build_scene, build_style, check_style
-from nerfart_plugin.schema import RunConfig, parse_config, show
+from nerfart_plugin.config_issues import show
+from nerfart_plugin.schema import RunConfig, parse_config
 from nerfart_plugin.stages import (ExportStage, PreviewStage, ReconstructStage, RenderStage, StylizeStage,
                                    stylization_source)
 from nerfart_plugin.utils.device import pick_device

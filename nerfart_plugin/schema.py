@@ -28,27 +28,21 @@ key (difflib). Numbers must be finite; booleans are not numbers.
 from __future__ import annotations
 
 import collections.abc
-import difflib
-import functools
-import math
-import types
 import typing
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Callable, Literal, Optional, Union
+from typing import Annotated, Any, Literal, Optional, Union
 
-import annotated_types as at
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, create_model, field_validator
-from pydantic.fields import FieldInfo
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
 
-from nerfart_plugin.config_types import (Float, Fraction, Int, Seed, Setting, allowed_text, changes_results,
-                                         off_hint)
+from nerfart_plugin.config_components import COMPONENTS, _check, data_model
+from nerfart_plugin.config_issues import Issue, issues_from, raise_issues
+from nerfart_plugin.config_types import Color, Float, Fraction, Int, PathText, Seed, Setting, changes_results
 from nerfart_plugin.errors import ConfigError
 
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
-    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "SCHEMA_NODE", "Issue", "check_settings", "parse_config",
-    "defaults_node", "register_schema", "result_settings", "to_plain", "help_text", "section",
+    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "check_settings", "parse_config",
+    "result_settings", "to_plain", "section",
 ]
 
 #: samples (rays x samples per ray) of one training step with grad: far beyond any GPU's memory above this
@@ -66,7 +60,6 @@ class Section(BaseModel):
     model_config = _MODEL_CONFIG
 
 
-Color = Annotated[list[Annotated[Float, Field(ge=0.0, le=1.0)]], Field(min_length=3, max_length=3)]
 AutoBool = Union[Literal["auto"], bool]
 _NO_STEPS = "to skip this stage pick another one: stage=reconstruct | stylize | all | export"
 _CHUNK_OFF = "there is no 'no chunking': a larger chunk renders more rays at once and needs more memory"
@@ -360,7 +353,6 @@ def _prompt_text(value: Any) -> Any:
 
 
 PromptText = Annotated[str, BeforeValidator(_prompt_text), Field(min_length=1)]
-PathText = Union[str, Path]
 
 
 MixWeight = Annotated[Float, Field(ge=-1.0, le=2.0)]
@@ -440,362 +432,6 @@ SECTIONS: dict[str, type[Section]] = {
     "render": RenderConfig, "reconstruct": ReconstructConfig, "stylize": StylizeConfig, "export": ExportConfig,
     "trainer": TrainerConfig, "experiment": ExperimentConfig, "logger": LoggerConfig, "mix": MixConfig,
     "preview": PreviewConfig, "viewer": ViewerConfig,
-}
-
-
-# ---------------------------------------------------------------------- violations -> one ConfigError
-@dataclass
-class Issue:
-    """One violation: ``key=value: allowed (off)``."""
-
-    key: str
-    value: Any
-    allowed: str
-    off: Optional[str] = None
-
-    def __str__(self) -> str:
-        text = f"{self.key}={show(self.value)}: {self.allowed}"
-        return f"{text} ({self.off})" if self.off and _zero_like(self.value) else text
-
-
-def show(value: Any) -> str:
-    """A value as a user would type it on the command line."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(show(v) for v in value) + "]"
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, (int, Path)):
-        return str(value)
-    text = repr(value)
-    return text if len(text) <= 80 else text[:77] + "..."
-
-
-def _zero_like(value: Any) -> bool:
-    """0, null, false, empty: the values a user types to mean "off"."""
-    if value is None or value is False or (isinstance(value, (list, tuple, dict)) and not value):
-        return True
-    if isinstance(value, (int, float)):
-        return value == 0 or (isinstance(value, float) and math.isnan(value))
-    return isinstance(value, str) and value.strip().lower() in ("", "0", "none", "null", "off", "false", "no")
-
-
-def raise_issues(issues: list[Issue]) -> None:
-    """Raise one ConfigError listing every issue (nothing if there is none)."""
-    if not issues:
-        return
-    seen: dict[str, Issue] = {}
-    for issue in issues:
-        seen.setdefault(issue.key, issue)
-    lines = [str(i) for i in seen.values()]
-    if len(lines) == 1:
-        raise ConfigError(lines[0])
-    raise ConfigError(f"{len(lines)} invalid settings:\n  " + "\n  ".join(lines))
-
-
-def _number(x: Any) -> str:
-    return f"{x:g}" if isinstance(x, float) else str(x)
-
-
-def _bounds(meta: list[Any]) -> str:
-    """' in [1, 4096]', ' > 0', ... from annotated_types constraints."""
-    lo = hi = None
-    for m in meta:
-        if isinstance(m, at.Ge):
-            lo = f"[{_number(m.ge)}"
-        elif isinstance(m, at.Gt):
-            lo = f"({_number(m.gt)}"
-        elif isinstance(m, at.Le):
-            hi = f"{_number(m.le)}]"
-        elif isinstance(m, at.Lt):
-            hi = f"{_number(m.lt)})"
-    if lo and hi:
-        return f" in {lo}, {hi}"
-    if lo:
-        return (" >= " if lo[0] == "[" else " > ") + lo[1:]
-    if hi:
-        return (" <= " if hi[-1] == "]" else " < ") + hi[:-1]
-    return ""
-
-
-def _flat_meta(meta: list[Any]) -> list[Any]:
-    out: list[Any] = []
-    for m in meta:
-        out.extend(m.metadata if isinstance(m, FieldInfo) else [m])
-    return out
-
-
-def _choice(value: Any) -> str:
-    """A choice as typed on the command line (text unquoted)."""
-    return value if isinstance(value, str) else show(value)
-
-
-def _choices(tp: Any) -> Optional[list[Any]]:
-    """The values a Literal / bool allows (None for other types)."""
-    if typing.get_origin(tp) is Literal:
-        return list(typing.get_args(tp))
-    return [True, False] if tp is bool else None
-
-
-def describe(tp: Any, meta: Optional[list[Any]] = None) -> str:
-    """What a type annotation (with its constraints) allows, in words."""
-    meta = _flat_meta(list(meta or []))
-    origin, args = typing.get_origin(tp), typing.get_args(tp)
-    if origin is Annotated:
-        return describe(args[0], [*args[1:], *meta])
-    if origin in (Union, types.UnionType):
-        rest = [a for a in args if a is not type(None)]
-        values = [v for a in rest for v in (_choices(a) or [])]
-        others = [describe(a, meta if len(rest) == 1 else None) for a in rest if _choices(a) is None]
-        choice = "true or false" if values == [True, False] else "one of " + ", ".join(_choice(v) for v in values)
-        parts = ([choice] if values else []) + others
-        return ", or ".join(parts) + (", or null" if len(rest) < len(args) else "")
-    choices = _choices(tp)
-    if choices is not None:
-        return "true or false" if tp is bool else "one of " + ", ".join(_choice(a) for a in choices)
-    if tp is int:
-        return "an integer" + _bounds(meta)
-    if tp is float:
-        return "a number" + _bounds(meta)
-    if tp is str:
-        return "non-empty text" if _min_len(meta) else "text"
-    if tp is Path:
-        return "a path"
-    if origin in (list, tuple, collections.abc.Sequence) or tp in (list, tuple):
-        n_lo, n_hi = _min_len(meta), _max_len(meta)
-        size = f"{n_lo} values" if n_lo is not None and n_lo == n_hi else "at least one value" if n_lo else "values"
-        return f"a list of {size}" + (f", each {describe(args[0])}" if args else "")
-    if origin in (dict, collections.abc.Mapping) or tp is dict:
-        return "a mapping of settings"
-    if isinstance(tp, type) and issubclass(tp, BaseModel):
-        return "a section of settings"
-    if tp is Any:
-        return "any value"
-    return f"a {getattr(tp, '__name__', str(tp))}"
-
-
-def _min_len(meta: list[Any]) -> Optional[int]:
-    return next((m.min_length for m in meta if isinstance(m, at.MinLen)), None)
-
-
-def _max_len(meta: list[Any]) -> Optional[int]:
-    return next((m.max_length for m in meta if isinstance(m, at.MaxLen)), None)
-
-
-def _model_in(tp: Any) -> Optional[type[BaseModel]]:
-    """The BaseModel subclass an annotation is (or is optionally), else None."""
-    if isinstance(tp, type) and issubclass(tp, BaseModel):
-        return tp
-    if typing.get_origin(tp) in (Union, types.UnionType, Annotated):
-        for a in typing.get_args(tp):
-            m = _model_in(a)
-            if m is not None:
-                return m
-    return None
-
-
-def suggest(key: str, valid: list[str]) -> str:
-    """'; did you mean x?' for the closest valid key, or ''."""
-    close = difflib.get_close_matches(key, valid, n=1, cutoff=0.6)
-    return f"; did you mean {close[0]}?" if close else ""
-
-
-def unknown_key(key: str, value: Any, valid: list[str]) -> Issue:
-    """An Issue for a key that no section or component accepts, with the closest valid one
-    (``valid``: dotted keys of the same section; names are compared without the section prefix)."""
-    prefix, _, name = key.rpartition(".")
-    lead = f"{prefix}." if prefix else ""
-    names = [v[len(lead):] if v.startswith(lead) else v for v in valid]
-    close = difflib.get_close_matches(name, names, n=1, cutoff=0.6)
-    hint = f"; did you mean {lead}{close[0]}?" if close else ""
-    return Issue(key, value, f"unknown setting{hint} (valid: {', '.join(valid)})")
-
-
-def issues_from(exc: ValidationError, model: type[BaseModel], data: Any, prefix: str = "") -> list[Issue]:
-    """One Issue per invalid key of a pydantic ValidationError (union branches and list items merged)."""
-    out: list[Issue] = []
-    for err in exc.errors():
-        cls: Optional[type[BaseModel]] = model
-        info: Optional[FieldInfo] = None
-        path: list[str] = []
-        value = data
-        loc = list(err["loc"])
-        for part in loc:
-            if isinstance(part, str) and cls is not None and part in cls.model_fields:
-                info = cls.model_fields[part]
-                path.append(part)
-                value = value.get(part) if isinstance(value, dict) else None
-                cls = _model_in(info.annotation)
-            else:
-                break
-        dotted = ".".join([p for p in (prefix,) if p] + path)
-        if err["type"] == "extra_forbidden":
-            extra = str(loc[len(path)])
-            parent = dotted
-            key = f"{parent}.{extra}" if parent else extra
-            valid = sorted(cls.model_fields) if cls is not None else []
-            where = f"{parent}." if parent else ""
-            out.append(unknown_key(key, err["input"], [f"{where}{v}" for v in valid]))
-        elif info is not None:
-            out.append(Issue(dotted, value, allowed_text(info) or describe(info.annotation, info.metadata),
-                             off_hint(info)))
-        else:
-            out.append(Issue(dotted or "(config)", value, err["msg"]))
-    return out
-
-
-# ---------------------------------------------------------------------- components, from their Configs
-def _check(model: type[BaseModel], values: dict, prefix: str) -> tuple[dict, list[Issue]]:
-    """Validate ``values`` against ``model``: (coerced values that were given, issues)."""
-    try:
-        return model.model_validate(values).model_dump(exclude_unset=True), []
-    except ValidationError as exc:
-        return values, issues_from(exc, model, values, prefix)
-
-
-def _registered(kind: str, name: Any, key: str) -> tuple[Any, list[Issue]]:
-    from nerfart_plugin import registry
-
-    valid = registry.names(kind)
-    if isinstance(name, str) and name in valid:
-        return registry.get(kind, name), []
-    return None, [Issue(key, name, "one of " + ", ".join(valid) + suggest(str(name), valid))]
-
-
-def _mapping(section: str, value: Any) -> tuple[dict, list[Issue]]:
-    if isinstance(value, dict):
-        return value, []
-    return {}, [Issue(section, value, "a section of settings (" + section + ".key=value)")]
-
-
-@functools.lru_cache(maxsize=None)
-def named_model(kind: str, name: str) -> type[BaseModel]:
-    """The pydantic model of a component section (``encoding``, ``backbone``): ``name`` + the ``Config``
-    declared beside the registered component."""
-    from nerfart_plugin import registry
-    from nerfart_plugin.components import config_of
-
-    config = config_of(registry.get(kind, name))
-    return create_model(f"{config.__qualname__.replace('.', '')}Section", __base__=config, name=(str, ...))
-
-
-def check_encoding(cfg: Any, prefix: str = "encoding") -> tuple[dict, list[Issue]]:
-    """``encoding`` (or a nested one such as ``backbone.dir_encoding``): ``name`` + the encoding's settings."""
-    cfg, issues = _mapping(prefix, cfg)
-    name = cfg.get("name")
-    cls, issues2 = _registered("encoding", name, f"{prefix}.name")
-    if cls is None:
-        return cfg, issues + issues2
-    return _check(named_model("encoding", name), cfg, prefix)
-
-
-def check_backbone(cfg: Any) -> tuple[dict, list[Issue]]:
-    """``backbone``: ``name`` + the field's settings (``dir_encoding`` checked as an encoding)."""
-    cfg, issues = _mapping("backbone", cfg)
-    cls, issues2 = _registered("backbone", cfg.get("name"), "backbone.name")
-    if cls is None:
-        return cfg, issues + issues2
-    out, issues = _check(named_model("backbone", cfg["name"]), cfg, "backbone")
-    if isinstance(cfg.get("dir_encoding"), dict):
-        enc, more = check_encoding(cfg["dir_encoding"], "backbone.dir_encoding")
-        out = {**out, "dir_encoding": enc}
-        issues += more
-    return out, issues
-
-
-DataBackground = Optional[Union[Color, Literal["white", "black"]]]
-#: the settings of ``data`` that the datamodule reads besides the loader's (one FieldInfo each: data_model caches)
-DATA_EXTRAS: tuple[tuple[str, Any, Any], ...] = (
-    ("kind", str, ...), ("path", Optional[PathText], None),
-    ("ndc", Optional[bool], Setting(None, description="NDC rays; null: for forward-facing captures")),
-    ("background_color", DataBackground, None),
-    ("subject", Optional[Literal["person", "object", "scene"]],
-     Setting(None, description="what the capture shows (source text of Eq. 4); stylization only: it reaches the "
-             "stylization key through the source prompt", changes_results=False)),
-)
-
-
-@functools.lru_cache(maxsize=None)
-def data_model(kind: str) -> type[BaseModel]:
-    """The pydantic model of ``data`` for loader ``kind``: the loader's ``Config`` + :data:`DATA_EXTRAS`."""
-    from nerfart_plugin import registry
-    from nerfart_plugin.components import config_of
-
-    config = config_of(registry.get("data", kind))
-    return create_model(f"{config.__name__}Section", __base__=config,
-                        **{name: (tp, default) for name, tp, default in DATA_EXTRAS})
-
-
-def check_data(cfg: Any) -> tuple[dict, list[Issue]]:
-    """``data``: ``kind`` + the loader's settings + the datamodule's (path, ndc, background_color, subject)."""
-    cfg, issues = _mapping("data", cfg)
-    loader, issues2 = _registered("data", cfg.get("kind"), "data.kind")
-    if loader is None:
-        return cfg, issues + issues2
-    if cfg.get("path") == "???":
-        return cfg, [Issue("data.path", "???", f"required for data={cfg['kind']}: set data.path=/path/to/scene")]
-    return _check(data_model(cfg["kind"]), cfg, "data")
-
-
-_GUIDANCE_KEYS = ("name", "allow_random_weights", "allow_download", "perceptual")
-
-
-class GuidanceCommon(BaseModel):
-    """The keys of ``guidance`` shared by every guidance; the sub-sections are checked per component."""
-
-    model_config = ConfigDict(extra="allow", allow_inf_nan=False)
-
-    name: str = Setting("clip", description="the guidance: clip | imagenet | toy (the registry's guidance names)")
-    allow_random_weights: bool = Setting(False, description="tests only: random CLIP/VGG weights (outputs stamped)")
-    allow_download: Optional[bool] = Setting(None, description="fetch missing weights; null: env NERFART_ALLOW_DOWNLOAD")
-    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = Setting(
-        None, description="Eq. 9 features; null: vgg for clip, edges for toy, imagenet for imagenet")
-
-
-def guidance_parts() -> dict[str, type[BaseModel]]:
-    """Sub-section key of ``guidance`` -> the ``Config`` declared beside its guide or perceptual network
-    (each Config's ``section`` names its key: ``guidance.clip``, ``guidance.vgg``, ``guidance.lite_perceptual``)."""
-    from nerfart_plugin import registry
-    from nerfart_plugin.components import config_of
-
-    parts: dict[str, type[BaseModel]] = {}
-    for kind in ("guidance", "perceptual"):
-        for name in registry.names(kind):
-            config = config_of(registry.get(kind, name))
-            parts[config.section.split(".", 1)[1]] = config
-    return parts
-
-
-def check_guidance(cfg: Any) -> tuple[dict, list[Issue]]:
-    """``guidance``: the common keys, then each sub-section (``clip``, ``vgg``, ...) by its component's Config."""
-    cfg, issues = _mapping("guidance", cfg)
-    _, issues2 = _registered("guidance", cfg.get("name"), "guidance.name")
-    if issues2:
-        return cfg, issues + issues2
-    try:
-        common = GuidanceCommon.model_validate(cfg).model_dump(exclude_unset=True)
-    except ValidationError as exc:
-        return cfg, issues_from(exc, GuidanceCommon, cfg, "guidance")
-    parts = guidance_parts()
-    out = {k: common[k] for k in _GUIDANCE_KEYS if k in common}
-    for key, value in cfg.items():
-        if key in _GUIDANCE_KEYS:
-            continue
-        if key not in parts:
-            valid = sorted([*_GUIDANCE_KEYS, *parts])
-            issues.append(unknown_key(f"guidance.{key}", value, [f"guidance.{v}" for v in valid]))
-            continue
-        sub, more = _mapping(f"guidance.{key}", value)
-        out[key], more2 = _check(parts[key], sub, f"guidance.{key}")
-        issues += more + more2
-    return out, issues
-
-
-COMPONENTS: dict[str, Callable[[Any], tuple[dict, list[Issue]]]] = {
-    "data": check_data, "backbone": check_backbone, "encoding": check_encoding, "guidance": check_guidance,
 }
 
 
@@ -940,63 +576,6 @@ def _dump(value: Any) -> Any:
     if isinstance(value, (list, tuple)):
         return [_dump(v) for v in value]
     return value
-
-
-# ---------------------------------------------------------------------- the Hydra node and --help
-#: name of the schema's defaults in Hydra's ConfigStore (first entry of conf/config.yaml's defaults list)
-SCHEMA_NODE = "nerfart_schema"
-
-
-def defaults_node() -> dict[str, Any]:
-    """Every default of the sections with fixed keys, as the plain dict Hydra composes first, plus
-    ``hydra.help.template`` listing every setting with its description (``--help``)."""
-    node = RunConfig().model_dump(mode="json", exclude=set(COMPONENTS))
-    node["hydra"] = {"help": {"template": help_template()}}
-    return node
-
-
-def register_schema() -> None:
-    """Store :func:`defaults_node` in Hydra's ConfigStore as :data:`SCHEMA_NODE` (idempotent); done by
-    :func:`nerfart_plugin.config_paths.config_dir`, i.e. before anything composes ``conf/``."""
-    from hydra.core.config_store import ConfigStore
-
-    ConfigStore.instance().store(name=SCHEMA_NODE, node=defaults_node())
-
-
-def settings_rows(model: type[BaseModel] = None, prefix: str = "") -> list[tuple[str, str, str, bool]]:
-    """Every setting of the sections with fixed keys as ``(dotted key, default as typed, description, in the
-    cache key)``: what ``--help`` and the documentation's settings reference list."""
-    rows: list[tuple[str, str, str, bool]] = []
-    for name, info in (model or RunConfig).model_fields.items():
-        sub = _model_in(info.annotation)
-        if sub is not None:
-            rows += settings_rows(sub, f"{prefix}{name}.")
-            continue
-        if typing.get_origin(info.annotation) is dict:
-            continue  # component sections: their config groups
-        default = info.get_default(call_default_factory=True)
-        rows.append((f"{prefix}{name}", default if isinstance(default, str) else show(default),
-                     info.description or "", changes_results(info)))
-    return rows
-
-
-def _settings_lines(model: type[BaseModel], prefix: str = "") -> list[str]:
-    return [f"  {key}={default}: {text}{'' if cached else ' [not in the cache key]'}"
-            for key, default, text, cached in settings_rows(model, prefix)]
-
-
-def help_text() -> str:
-    """Every setting of the sections with fixed keys, ``key=default: description``, one per line."""
-    return "\n".join(_settings_lines(RunConfig))
-
-
-def help_template() -> str:
-    """Hydra's ``--help`` template: header, config groups, then :func:`help_text` instead of the raw config."""
-    text = help_text().replace("${", "$\\{")
-    return ("${hydra.help.header}\n== Configuration groups ==\nCompose your configuration from those groups "
-            "(group=option)\n\n$APP_CONFIG_GROUPS\n\n== Settings (key=default: meaning) ==\n"
-            "Override any of them with key=value; the component groups (data, backbone, encoding, guidance) take\n"
-            "the settings of the component they name (see --cfg job).\n\n" + text + "\n\n${hydra.help.footer}\n")
 
 
 SectionT = typing.TypeVar("SectionT", bound=BaseModel)

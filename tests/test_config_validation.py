@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 from pydantic import BaseModel
 
-from nerfart_plugin import schema
+from nerfart_plugin import config_components, config_help, config_issues, schema
 from nerfart_plugin.config_paths import config_dir, group_options
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.pipeline import Pipeline, validate_config
@@ -44,7 +44,7 @@ def _schema_keys(model: type[BaseModel], prefix: str = "") -> set[str]:
     for name, info in model.model_fields.items():
         if typing.get_origin(info.annotation) is dict:
             continue  # a component section: its config group
-        sub = schema._model_in(info.annotation)
+        sub = config_issues._model_in(info.annotation)
         keys |= _schema_keys(sub, f"{prefix}{name}.") if sub is not None else {f"{prefix}{name}"}
     return keys
 
@@ -59,7 +59,7 @@ def test_yaml_repeats_no_schema_default():
     """conf/config.yaml, experiment=full and preset=balanced set nothing the schema declares."""
     declared = _schema_keys(schema.RunConfig)
     raw = OmegaConf.to_container(OmegaConf.load(config_dir() / "config.yaml"))
-    assert raw["defaults"][:2] == [schema.SCHEMA_NODE, "_self_"]
+    assert raw["defaults"][:2] == [config_help.SCHEMA_NODE, "_self_"]
     raw = {k: v for k, v in raw.items() if k not in ("defaults", "hydra")}
     assert not _yaml_keys(raw) & declared, "conf/config.yaml repeats schema defaults"
     for name in ("experiment/full.yaml", "preset/balanced.yaml"):
@@ -68,13 +68,13 @@ def test_yaml_repeats_no_schema_default():
 
 def test_composed_defaults_are_the_schema_defaults():
     composed = cfg()
-    defaults = schema.RunConfig().model_dump(mode="json", exclude=set(schema.COMPONENTS))
+    defaults = schema.RunConfig().model_dump(mode="json", exclude=set(config_components.COMPONENTS))
     assert {k: composed[k] for k in defaults} == defaults
     assert schema.check_settings(composed) == composed  # validation changes nothing in the defaults
 
 
 def test_help_lists_every_setting_with_its_description():
-    text = schema.help_text()
+    text = config_help.help_text()
     for key in _schema_keys(schema.RunConfig):
         assert f"  {key}=" in text, key
     assert "reconstruct.val_every=1000: steps between validations" in text
@@ -302,7 +302,7 @@ def _leaves(model: type[BaseModel], prefix: str) -> list[str]:
     for name, info in model.model_fields.items():
         if typing.get_origin(info.annotation) is dict:
             continue  # a component section: enumerated from its component below
-        sub = schema._model_in(info.annotation)
+        sub = config_issues._model_in(info.annotation)
         out += _leaves(sub, f"{prefix}{name}.") if sub is not None else [f"{prefix}{name}"]
     return out
 
@@ -314,8 +314,8 @@ def _component_leaves(variant: tuple[str, ...]) -> list[str]:
         model = _section_model(section, c[section])
         keys += [f"{section}.{k}" for k in model.model_fields]
     keys += [f"backbone.dir_encoding.{k}" for k in c["backbone"]["dir_encoding"]]
-    keys += [f"guidance.{k}" for k in schema.GuidanceCommon.model_fields]
-    for part, config in schema.guidance_parts().items():
+    keys += [f"guidance.{k}" for k in config_components.GuidanceCommon.model_fields]
+    for part, config in config_components.guidance_parts().items():
         if part in c["guidance"]:
             keys += [f"guidance.{part}.{k}" for k in config.model_fields]
     return keys
@@ -324,8 +324,8 @@ def _component_leaves(variant: tuple[str, ...]) -> list[str]:
 def _section_model(section: str, values: dict) -> type[BaseModel]:
 
     if section == "data":
-        return schema.data_model(values["kind"])
-    return schema.named_model(section, values["name"])
+        return config_components.data_model(values["kind"])
+    return config_components.named_model(section, values["name"])
 
 
 #: every option of every component group is among the variants (test_property_test_covers_every_section)

@@ -38,7 +38,7 @@ def test_every_loader_declares_its_settings_and_refuses_unknown_options():
     mistyped option, from Python or from the command line, is one ConfigError with the closest valid name."""
     from nerfart_plugin.components import config_of
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.schema import check_data
+    from nerfart_plugin.config_components import check_data
 
     for kind in registry.names("data"):
         fields = config_of(registry.get("data", kind)).model_fields

@@ -73,7 +73,7 @@ def test_the_settings_reference_is_what_the_schema_says():
     assert page.read_text() == make["settings_page"](), "run: python docs/make_reference.py"
     errors = REPO / "docs" / "reference" / "errors.md"
     assert errors.read_text() == make["errors_page"](), "run: python docs/make_reference.py"
-    from nerfart_plugin.schema import settings_rows
+    from nerfart_plugin.config_help import settings_rows
 
     assert all(f"`{key}`" in page.read_text() for key, *_ in settings_rows())
 

@@ -62,8 +62,9 @@ __all__ = [
 
 
 def _common(cfg: Any) -> tuple[Any, dict[str, Any]]:
-    """The keys every guidance shares (typed: :class:`~nerfart_plugin.schema.GuidanceCommon`) and the config."""
-    from nerfart_plugin.schema import GuidanceCommon, section, to_plain
+    """The keys every guidance shares (typed: :class:`~nerfart_plugin.config_components.GuidanceCommon`) and the config."""
+    from nerfart_plugin.config_components import GuidanceCommon
+    from nerfart_plugin.schema import section, to_plain
 
     c = to_plain(cfg)
     return section(GuidanceCommon, c, prefix="guidance"), c
