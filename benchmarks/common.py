@@ -30,10 +30,8 @@ from pathlib import Path
 from typing import Any, Callable, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))  # run from a checkout without installing the package
 
-from nerfart_plugin.utils.io import atomic_write_text  # noqa: E402
+from nerfart_plugin.utils.io import atomic_write_text
 
 BENCHMARKS_MD = ROOT / "BENCHMARKS.md"
 FIGURES = ROOT / "benchmarks" / "figures"
@@ -106,10 +104,12 @@ def markers(name: str) -> tuple[str, str]:
 
 
 def command(script: str, argv: Sequence[str]) -> str:
-    """The exact command to reproduce, from the repository root (with the ``taskset`` pinning it ran under)."""
+    """The exact command to reproduce, from the repository root (with the ``taskset`` pinning it ran under):
+    ``python -m benchmarks NAME ...`` for the benchmark module ``script`` (``NAME`` or ``NAME.py``)."""
     cpus = pinned_cpus()
     pin = ["taskset", "-c", ",".join(map(str, cpus))] if cpus else []
-    return " ".join([*pin, "python", f"benchmarks/{script}", *(shlex.quote(a) for a in argv)])
+    name = script.removesuffix(".py")
+    return " ".join([*pin, "python", "-m", "benchmarks", name, *(shlex.quote(a) for a in argv)])
 
 
 def section(name: str, title: str, cmd: str, info: dict[str, Any], body: list[str], quick: bool) -> str:

@@ -16,8 +16,8 @@ Without a CUDA device the section says "not measured" and why (the CPU suite nev
 Raw figures go to ``--raw`` (default ``benchmarks/results/gpu.json``).
 
     bash benchmarks/gpu_check.sh                   # the CUDA tests, then this script (<= 8 min on one GPU)
-    python benchmarks/gpu.py --data-root ../shared/data
-    python benchmarks/gpu.py --report-from gpu.json   # the section from the figures a GPU machine returned
+    python -m benchmarks gpu --data-root ../shared/data
+    python -m benchmarks gpu --report-from gpu.json   # the section from the figures a GPU machine returned
 """
 
 from __future__ import annotations
@@ -31,10 +31,9 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
-from benchmarks.paper_resolution import paper_job  # noqa: E402
+from benchmarks import common
+from benchmarks.paper_resolution import paper_job
 
 log = logging.getLogger("bench.gpu")
 NAME = "gpu"

@@ -20,8 +20,8 @@ on the CPU with every import outside the two refused, which shows the bundle is 
 paths. The versions are the ones installed here (the versions the CPU suite passes with), except
 imageio-ffmpeg, pinned to 0.6.0: the 0.8 wheel is 68 MB, over one call's carry.
 
-    python benchmarks/gpu_bundle.py                     # writes .gpu_bundle/{tests,bench}
-    python benchmarks/gpu_bundle.py --check-imports     # and proves the import closure on the CPU
+    python -m benchmarks gpu_bundle                     # writes .gpu_bundle/{tests,bench}
+    python -m benchmarks gpu_bundle --check-imports     # and proves the import closure on the CPU
 """
 
 from __future__ import annotations
@@ -38,10 +38,9 @@ from typing import Iterable, Optional
 
 from packaging.utils import canonicalize_name as norm  # PEP 503 names: "Hydra_Core" -> "hydra-core"
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from benchmarks import common
 
-from benchmarks import common  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 log = logging.getLogger("bench.gpu_bundle")
 

@@ -4,12 +4,12 @@
 #          pipeline on cuda) -> $RESULTS/gpu_tests.log;
 #   bench: benchmarks/gpu.py on device=cuda: the paper-resolution job (preset=paper_res) on a selfie capture and
 #          stylization at 512x512 with patch backprop (peak GPU memory) -> $RESULTS/gpu.json, gpu_bench.log
-#          (on this machine, the GPU section of BENCHMARKS.md; elsewhere `python benchmarks/gpu.py
+#          (on this machine, the GPU section of BENCHMARKS.md; elsewhere `python -m benchmarks gpu
 #          --report-from gpu.json` writes it from the returned figures).
 # $RESULTS is $OUT where set, else benchmarks/results.
 # Usage (from the repo root):  bash benchmarks/gpu_check.sh [tests|bench|all] [DATA_ROOT]
 #   DATA_ROOT holds fangzhou_nature/ (default ../shared/data). A machine without a package index gets the
-#   wheels it lacks from .gpu_bundle/*/wheels (python benchmarks/gpu_bundle.py writes them, and a compact
+#   wheels it lacks from .gpu_bundle/*/wheels (python -m benchmarks gpu_bundle writes them, and a compact
 #   fangzhou_nature in .gpu_bundle/bench/data); they are installed into .gpu_site/, which the bench part
 #   reuses when the tests part ran on the same machine before it.
 set -euo pipefail
@@ -32,7 +32,7 @@ fi
 if [ -d .gpu_site ]; then export PYTHONPATH="$PWD/.gpu_site:$PWD${PYTHONPATH:+:$PYTHONPATH}"; fi
 missing=$(python3 -c "import importlib.util as u; print(' '.join(m for m in ('hydra', 'kornia', 'pydantic', 'imageio_ffmpeg') if u.find_spec(m) is None))")
 if [ -n "$missing" ]; then
-  echo "missing on this machine: $missing. Run 'python benchmarks/gpu_bundle.py' where pip works and carry" \
+  echo "missing on this machine: $missing. Run 'python -m benchmarks gpu_bundle' where pip works and carry" \
        ".gpu_bundle/tests (the bench part reuses its install only on the same machine, right after it)." >&2
   exit 3
 fi
@@ -42,6 +42,6 @@ if [ "$PART" != bench ]; then
   timeout 200 python3 -m pytest -q -p no:cacheprovider -m cuda tests/test_cuda.py 2>&1 | tee "$RESULTS/gpu_tests.log" || rc=$?
 fi
 if [ "$PART" != tests ]; then
-  timeout 480 python3 benchmarks/gpu.py --data-root "$DATA_ROOT" --raw "$RESULTS/gpu.json" 2>&1 | tail -n 40 | tee "$RESULTS/gpu_bench.log" || rc=$?
+  timeout 480 python3 -m benchmarks gpu --data-root "$DATA_ROOT" --raw "$RESULTS/gpu.json" 2>&1 | tail -n 40 | tee "$RESULTS/gpu_bench.log" || rc=$?
 fi
 exit $rc

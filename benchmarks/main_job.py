@@ -16,9 +16,9 @@ Targets (issue "fast feedback"): the first job <= 12 min end to end; held-out PS
 the judge's top-5 on >= 3 of the 4 held-out views for every prompt; no stage repeats work an
 earlier one wrote (the stylization copies the reconstruction's source mesh and texture).
 
-    python benchmarks/main_job.py                      # the README job + 2 more prompts
-    python benchmarks/main_job.py --prompts "brain coral"
-    python benchmarks/main_job.py --quick              # smoke run (tiny schedule, not a result)
+    python -m benchmarks main_job                      # the README job + 2 more prompts
+    python -m benchmarks main_job --prompts "brain coral"
+    python -m benchmarks main_job --quick              # smoke run (tiny schedule, not a result)
 """
 
 from __future__ import annotations
@@ -35,9 +35,8 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.main_job")
 NAME = "main_job"

@@ -10,8 +10,8 @@ floater pass, no colour) and vertex count.
 Writes its table into BENCHMARKS.md between ``<!-- mesh_extraction:start -->``
 and ``<!-- mesh_extraction:end -->`` (other sections are preserved).
 
-    python benchmarks/mesh_extraction.py                        # 32 64 128 256
-    python benchmarks/mesh_extraction.py --resolutions 32 64 128 256 512
+    python -m benchmarks mesh_extraction                        # 32 64 128 256
+    python -m benchmarks mesh_extraction --resolutions 32 64 128 256 512
 """
 
 from __future__ import annotations
@@ -24,12 +24,10 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))  # run from a checkout without installing the package
-sys.path.insert(0, str(ROOT / "tests"))  # the analytic stand-in fields are test fixtures
 
-from analytic_fields import SphereSDF, TorusSDF, chamfer_to_analytic  # noqa: E402
-from benchmarks import common  # noqa: E402
-from nerfart_plugin.export.mesh import MeshExtractor  # noqa: E402
+from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF, chamfer_to_analytic
+from benchmarks import common
+from nerfart_plugin.export.mesh import MeshExtractor
 
 log = logging.getLogger("mesh_extraction")
 NAME = "mesh_extraction"
@@ -62,7 +60,7 @@ def run(resolutions: list[int], n_samples: int) -> list[dict]:
 
 
 def table(rows: list[dict], argv: list[str], n_samples: int, info: dict) -> str:
-    cmd = " ".join(["python benchmarks/mesh_extraction.py", *argv])
+    cmd = " ".join(["python -m benchmarks mesh_extraction", *argv])
     lines = [
         START,
         "## Mesh extraction accuracy (marching cubes on analytic SDFs)",

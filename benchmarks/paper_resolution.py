@@ -18,10 +18,10 @@ training views at 270x480 with 12 local patches), ``guidance=imagenet``, from an
 output root: wall time of each stage, held-out PSNR, the judge. Goal: <= 45 min on the
 2-core development machine. :func:`paper_job` is also the GPU benchmark's job (``gpu.py``).
 
-    python benchmarks/paper_resolution.py
-    python benchmarks/paper_resolution.py --skip-job                  # part 1 only
-    python benchmarks/paper_resolution.py --quick
-    python benchmarks/paper_resolution.py --skip-steps --skip-job     # the section from the raw file only
+    python -m benchmarks paper_resolution
+    python -m benchmarks paper_resolution --skip-job                  # part 1 only
+    python -m benchmarks paper_resolution --quick
+    python -m benchmarks paper_resolution --skip-steps --skip-job     # the section from the raw file only
 """
 
 from __future__ import annotations
@@ -36,9 +36,8 @@ from pathlib import Path
 from typing import Any, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.paper_resolution")
 NAME = "paper_resolution"

@@ -22,8 +22,8 @@ moment, or ``torch.cuda.max_memory_allocated`` on CUDA. A child's address
 space is capped at setup + ``--mem-cap`` GiB and its run time at ``--timeout`` s;
 sizes predicted (linearly in the number of rays) to exceed either are skipped.
 
-    python benchmarks/patch_backprop.py                 # 64 128 256 512
-    python benchmarks/patch_backprop.py --quick         # smoke run, scratch output
+    python -m benchmarks patch_backprop                 # 64 128 256 512
+    python -m benchmarks patch_backprop --quick         # smoke run, scratch output
 """
 
 from __future__ import annotations
@@ -39,9 +39,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.patch_backprop")
 NAME = "patch_backprop"

@@ -10,8 +10,8 @@ default prompts mix styles that work on the head with objects that are expected 
 a volcano), so the ranking covers failures too. Targets: Spearman >= 0.7 over >= 8 prompts, each
 preview <= 60 s.
 
-    python benchmarks/preview.py --out-root /tmp/mj/out
-    python benchmarks/preview.py --prompts zebra tabby
+    python -m benchmarks preview --out-root /tmp/mj/out
+    python -m benchmarks preview --prompts zebra tabby
 """
 
 from __future__ import annotations
@@ -26,9 +26,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.preview")
 NAME = "preview"

@@ -21,9 +21,9 @@ measured step rate at each checkpoint); ``--fixed-schedule`` keeps ``reconstruct
 Writes its section of BENCHMARKS.md (``<!-- reconstruction:start/end -->``) and
 ``benchmarks/figures/reconstruction.png``.
 
-    python benchmarks/reconstruction.py                       # full: ~80-120 min on 2 CPU cores
-    python benchmarks/reconstruction.py --quick               # smoke run (< 2 min), scratch output
-    python benchmarks/reconstruction.py --scenes head --backbones neus volsdf
+    python -m benchmarks reconstruction                       # full: ~80-120 min on 2 CPU cores
+    python -m benchmarks reconstruction --quick               # smoke run (< 2 min), scratch output
+    python -m benchmarks reconstruction --scenes head --backbones neus volsdf
 """
 
 from __future__ import annotations
@@ -38,9 +38,8 @@ from pathlib import Path
 from typing import Any, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.reconstruction")
 NAME = "reconstruction"

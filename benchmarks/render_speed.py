@@ -19,9 +19,9 @@ Goal (issue 12): a 270x480 selfie view in <= 1.5 s at >= 40 dB.
 The reconstructions are the pipeline's own (cached under ``--out-root``, made first if
 missing, as ``benchmarks/stylization_quality.py`` makes them).
 
-    python benchmarks/render_speed.py
-    python benchmarks/render_speed.py --scenes fangzhou_nature --samples 16 24 32
-    python benchmarks/render_speed.py --quick
+    python -m benchmarks render_speed
+    python -m benchmarks render_speed --scenes fangzhou_nature --samples 16 24 32
+    python -m benchmarks render_speed --quick
 """
 
 from __future__ import annotations
@@ -35,9 +35,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.render_speed")
 NAME = "render_speed"

@@ -23,9 +23,9 @@ with that view's PSNR (what the choice costs in quality at equal steps). Each
 the measurement starts) above the RSS at that moment (``torch.cuda.max_memory_allocated``
 on CUDA).
 
-    python benchmarks/scene_setup.py
-    python benchmarks/scene_setup.py --scenes head fern
-    python benchmarks/scene_setup.py --quick
+    python -m benchmarks scene_setup
+    python -m benchmarks scene_setup --scenes head fern
+    python -m benchmarks scene_setup --quick
 """
 
 from __future__ import annotations
@@ -41,9 +41,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.scene_setup")
 NAME = "scene_setup"

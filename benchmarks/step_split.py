@@ -9,9 +9,9 @@ sides, with both stages' optimizer (``systems.base.adam``: torch's fused Adam) a
 (per-tensor loop) Adam it replaces; all figures of one run come from the same process, so their
 ratios are what to read on a noisy machine.
 
-    python benchmarks/step_split.py
-    python benchmarks/step_split.py --sides 128 256 384 --steps 60
-    python benchmarks/step_split.py --quick
+    python -m benchmarks step_split
+    python -m benchmarks step_split --sides 128 256 384 --steps 60
+    python -m benchmarks step_split --quick
 """
 
 from __future__ import annotations
@@ -25,9 +25,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.step_split")
 NAME = "step_split"

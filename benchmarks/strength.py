@@ -18,8 +18,8 @@ source and each pure run). Pictures for the docs: a strength strip (``docs/image
 and source | A | mix | B (``docs/images/mix.png``); and the README's gallery: per run, source |
 stylized | geometry (``docs/images/gallery.png``).
 
-    python benchmarks/strength.py                                   # the main-job benchmark's runs
-    python benchmarks/strength.py --runs outputs/stylizations/A outputs/stylizations/B
+    python -m benchmarks strength                                   # the main-job benchmark's runs
+    python -m benchmarks strength --runs outputs/stylizations/A outputs/stylizations/B
 """
 
 from __future__ import annotations
@@ -35,9 +35,8 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.strength")
 NAME = "strength"

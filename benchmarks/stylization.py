@@ -29,9 +29,9 @@ Part 0 (trained source only): fidelity of the no-grad render versus samples per 
 at the stylization resolution, and time per view: what the stylization default
 (16) costs in accuracy.
 
-    python benchmarks/stylization.py
-    python benchmarks/stylization.py --guidance clip --source-checkpoint outputs/reconstructions/.../final.ckpt
-    python benchmarks/stylization.py --quick
+    python -m benchmarks stylization
+    python -m benchmarks stylization --guidance clip --source-checkpoint outputs/reconstructions/.../final.ckpt
+    python -m benchmarks stylization --quick
 """
 
 from __future__ import annotations
@@ -46,9 +46,8 @@ from pathlib import Path
 from typing import Any, Callable, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.stylization")
 NAME = "stylization"

@@ -31,10 +31,10 @@ Raw results are appended to ``benchmarks/results/stylization_quality.json`` run
 by run (a long benchmark can be resumed: finished runs are read back, not
 recomputed), and ``--report-only`` rebuilds the section from them.
 
-    python benchmarks/stylization_quality.py                       # everything (hours on 2 CPU cores)
-    python benchmarks/stylization_quality.py --scenes head --configs full no_reg
-    python benchmarks/stylization_quality.py --report-only
-    python benchmarks/stylization_quality.py --quick
+    python -m benchmarks stylization_quality                       # everything (hours on 2 CPU cores)
+    python -m benchmarks stylization_quality --scenes head --configs full no_reg
+    python -m benchmarks stylization_quality --report-only
+    python -m benchmarks stylization_quality --quick
 """
 
 from __future__ import annotations
@@ -48,9 +48,8 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.stylization_quality")
 NAME = "stylization_quality"

@@ -17,9 +17,9 @@ highlighted, and each preset is said to be on the front, near it (within
 
 The full grid is 48 runs: select a subset, e.g.
 
-    python benchmarks/tradeoff.py --backbones volsdf --encodings grid --samples 32 64 --resolutions 64
-    python benchmarks/tradeoff.py --presets-only
-    python benchmarks/tradeoff.py --quick
+    python -m benchmarks tradeoff --backbones volsdf --encodings grid --samples 32 64 --resolutions 64
+    python -m benchmarks tradeoff --presets-only
+    python -m benchmarks tradeoff --quick
 """
 
 from __future__ import annotations
@@ -33,10 +33,9 @@ from pathlib import Path
 from typing import Any, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
-from benchmarks.reconstruction import load_scene, train_one  # noqa: E402
+from benchmarks import common
+from benchmarks.reconstruction import load_scene, train_one
 
 log = logging.getLogger("bench.tradeoff")
 NAME = "tradeoff"

@@ -15,8 +15,8 @@
 3. ``docs/images/viewer.png``: the main-job run in the viewer, taken by the test suite's headless browser
    (:mod:`nerfart_plugin.viewer.browser`).
 
-    python benchmarks/main_job.py --prompts "brain coral"       # first: the run to view
-    python benchmarks/viewer.py --run outputs/benchmarks/main_job/stylizations/<brain coral run>
+    python -m benchmarks main_job --prompts "brain coral"       # first: the run to view
+    python -m benchmarks viewer --run outputs/benchmarks/main_job/stylizations/<brain coral run>
 """
 
 from __future__ import annotations
@@ -35,9 +35,8 @@ from pathlib import Path
 from typing import Any, Optional
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from benchmarks import common  # noqa: E402
+from benchmarks import common
 
 log = logging.getLogger("bench.viewer")
 NAME = "viewer"

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import importlib.util
 import re
-import sys
 import json
 from pathlib import Path
 
@@ -20,12 +19,7 @@ pytestmark = pytest.mark.slow
 
 
 def _load(name: str):
-    if str(REPO) not in sys.path:
-        sys.path.insert(0, str(REPO))
-    spec = importlib.util.spec_from_file_location(f"bench_{name}", REPO / "benchmarks" / f"{name}.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return importlib.import_module(f"benchmarks.{name}")
 
 
 def _section(text: str, name: str) -> str:
@@ -52,7 +46,7 @@ def _check_common(text: str, name: str, cmd_part: str) -> str:
     sec = _section(text, name)
     assert "QUICK smoke run" in sec, "quick results must be labelled"
     # the command to reproduce, with the taskset pinning when the run was pinned to some CPUs
-    assert re.search(rf"`(taskset -c [0-9,]+ )?python benchmarks/{name}\.py", sec) and cmd_part in sec
+    assert re.search(rf"`(taskset -c [0-9,]+ )?python -m benchmarks {name}", sec) and cmd_part in sec
     assert re.search(r"Machine: \d+ CPUs \(nproc[^)]*\), .*torch .*load average at start [\d.]+", sec)
     return sec
 
@@ -173,7 +167,7 @@ def test_tradeoff_quick(out: Path) -> None:
 
 def _fake_run(label: str, times: list[float], psnrs: list[float], **cfg: object) -> dict:
     recs = [{"time": t, "psnr_masked": q, "psnr": q + 3, "ssim": 0.9} for t, q in zip(times, psnrs)]
-    return {**cfg, "label": label, "resolution": 128, "command": f"python benchmarks/tradeoff.py --raw {label}",
+    return {**cfg, "label": label, "resolution": 128, "command": f"python -m benchmarks tradeoff --raw {label}",
             "budget": 200, "schedule_steps": 6000, "records": recs, "final": recs[-1], "train_seconds": times[-1],
             "steps": 2000, "sec_per_step": 0.1}
 
@@ -276,17 +270,17 @@ def test_gpu_section_says_not_measured_without_cuda_and_tabulates_a_gpu_run(out:
                          "top5_source": 0.0, "top5": 1.0, "peak_gib": 3.0},
            "memory_512": {"peak_gib": 3.5, "step_s": 0.4, "steps": 10,
                           "retain_peak_gib": 9.25, "retain_step_s": 0.3, "retain_steps": 10}}
-    text = mod.report(raw, _load("gpu").common.machine_info(), "python benchmarks/gpu.py", quick=False)
+    text = mod.report(raw, _load("gpu").common.machine_info(), "python -m benchmarks gpu", quick=False)
     assert "| paper-resolution job (fangzhou_nature, 270x480, preset=paper_res): total | 6.0 min | <= 5 min | no |" in text
     assert "3.50 GiB | <= 4 GiB | yes" in text and "not measured" not in text
     assert "| 512x512, stylize.backprop=retain: peak GPU memory; seconds per step | 9.25 GiB; 0.30 |" in text
     # figures a GPU machine returned (its gpu.json) become the section here, with that machine's line
     info = {**mod.common.machine_info(), "cpu": "Lent EPYC", "nproc": 16}
     returned = tmp_path / "returned.json"
-    returned.write_text(json.dumps({**raw, "info": info, "command": "python benchmarks/gpu.py --data-root D"}))
+    returned.write_text(json.dumps({**raw, "info": info, "command": "python -m benchmarks gpu --data-root D"}))
     assert mod.main(["--report-from", str(returned), "--out", str(out)]) == 0
     sec = _section(out.read_text(), "gpu")
-    assert "python benchmarks/gpu.py --data-root D" in sec and "Lent EPYC" in sec and "3.50 GiB" in sec
+    assert "python -m benchmarks gpu --data-root D" in sec and "Lent EPYC" in sec and "3.50 GiB" in sec
     # a job the check's time limit stopped: the memory figure stays, the job reads not met
     returned.write_text(json.dumps({k: v for k, v in {**raw, "info": info, "command": "c"}.items() if k != "paper_job"}))
     assert mod.main(["--report-from", str(returned), "--out", str(out)]) == 0

@@ -1,18 +1,12 @@
-"""benchmarks/mesh_extraction.py: tiny run writes only its own BENCHMARKS.md section."""
+"""python -m benchmarks mesh_extraction: a tiny run writes only its own BENCHMARKS.md section."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
-REPO = Path(__file__).resolve().parents[1]
+import importlib
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("bench_mesh", REPO / "benchmarks" / "mesh_extraction.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return importlib.import_module("benchmarks.mesh_extraction")
 
 
 def test_benchmark_section_replaced_and_rest_preserved(tmp_path):
@@ -23,7 +17,7 @@ def test_benchmark_section_replaced_and_rest_preserved(tmp_path):
     text = out.read_text()
     assert "old table" not in text and "intro" in text and "keep me" in text
     assert text.count(bench.START) == 1 and text.count(bench.END) == 1
-    assert "`python benchmarks/mesh_extraction.py --resolutions 16 24 --samples 2000`" in text
+    assert "`python -m benchmarks mesh_extraction --resolutions 16 24 --samples 2000`" in text
     rows = [line for line in text.splitlines() if line.startswith(("| sphere", "| torus"))]
     assert len(rows) == 4
     chamfer = [float(r.split("|")[9]) for r in rows]

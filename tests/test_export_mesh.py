@@ -8,7 +8,7 @@ import torch
 import trimesh
 
 from nerfart_plugin.errors import ConfigError
-from analytic_fields import DensityFromSDF, SphereSDF, TorusSDF, UnionSDF, chamfer_to_analytic
+from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF, TorusSDF, UnionSDF, chamfer_to_analytic
 from nerfart_plugin.export.mesh import EmptyLevelSetError, MeshExtractor, export_mesh, view_directions
 
 

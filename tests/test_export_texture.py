@@ -10,7 +10,7 @@ import trimesh
 pytest.importorskip("xatlas")
 
 from nerfart_plugin.export import MeshExtractor  # noqa: E402
-from analytic_fields import SphereSDF  # noqa: E402
+from nerfart_plugin.fields.analytic import SphereSDF  # noqa: E402
 from nerfart_plugin.export.texture import bake_texture, export_textured, rasterize_atlas  # noqa: E402
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from nerfart_plugin.errors import ConfigError, DataError
-from analytic_fields import SphereSDF, TorusSDF, UnionSDF
+from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
 from nerfart_plugin.view import load_mesh, main, render_meshes
 

@@ -3,7 +3,7 @@ renders. Without a Chromium the browser tests skip with the reason; CI sets NERF
 there they fail instead of skipping.
 
 ``NERFART_VIEWER_SCREENSHOT=path.png`` keeps the page's screenshot (the documentation's comes from
-``python benchmarks/viewer.py``, which drives the same browser)."""
+``python -m benchmarks viewer``, which drives the same browser)."""
 
 from __future__ import annotations
 

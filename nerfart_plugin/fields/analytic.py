@@ -1,5 +1,5 @@
-"""Small analytic fields that follow the Field contract (test fixtures, also used by
-``benchmarks/mesh_extraction.py``).
+"""Small analytic fields with known surfaces that follow the Field contract: the references of the mesh
+extraction benchmark (``python -m benchmarks mesh_extraction``) and of the export tests.
 
 They implement only what mesh extraction / comparison needs:
 ``geometry(x [N,3]) -> [N]``, ``mesh_level``, ``mesh_inside_is_below``, ``signed_distance()``
