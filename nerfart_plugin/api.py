@@ -22,6 +22,7 @@ Nothing here trains: a finished run is only read (its ``final.ckpt``, ``config.y
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,10 +31,12 @@ from typing import Any, Callable, Optional, Sequence, Union
 import numpy as np
 import torch
 
+from nerfart_plugin.checkpoints import META_KEY, load_checkpoint, prefixed_state
 from nerfart_plugin.data.camera_path import CaptureCameras, scale_intrinsics
 from nerfart_plugin.data.render_path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.schema import RunConfig
+from nerfart_plugin.systems.scene_setup import SceneSetup
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -248,6 +251,53 @@ def _content(path: Path) -> str:
     return hash_files([Path(path)])
 
 
+@dataclass
+class _RunFolder:
+    """A run folder read back: its config, metrics and renderer (on the CPU, eval mode).
+
+    Attributes:
+        path: the run folder; checkpoint: the file the renderer was read from.
+        cfg: its typed config; metrics: its ``metrics.json`` ({} if none).
+        setup: the scene setup it was trained with (from the checkpoint's record).
+        renderer: the trained renderer.
+    """
+
+    path: Path
+    checkpoint: Path
+    cfg: RunConfig
+    metrics: dict
+    setup: SceneSetup
+    renderer: Any
+
+
+def _read_run_folder(run_dir: Path | str, checkpoint: str = "final.ckpt") -> _RunFolder:
+    """Read a reconstruction or stylization folder: ``config.yaml``, ``metrics.json`` and the renderer of
+    ``checkpoint`` (``last.ckpt`` for an unfinished run), rebuilt from the checkpoint's model record."""
+    from omegaconf import OmegaConf
+
+    from nerfart_plugin.factories import build_renderer, typed
+
+    path = Path(run_dir)
+    ckpt_path = path / checkpoint
+    if not (path / "config.yaml").is_file() or not ckpt_path.is_file():
+        raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
+                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
+    cfg, _ = typed(OmegaConf.load(path / "config.yaml"))
+    ckpt = load_checkpoint(ckpt_path, fix=f"If {ckpt_path.name} was damaged, run the command that made this run "
+                                          "again: it sets the damaged file aside and trains again from the run's "
+                                          "last.ckpt (nothing else in the folder is touched).")
+    meta = ckpt.get(META_KEY)
+    if not isinstance(meta, dict) or "setup" not in meta:
+        raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "
+                           "with factories.build_scene(cfg) and factories.load_renderer_state(checkpoint, scene).")
+    setup = SceneSetup(**meta["setup"])
+    renderer = build_renderer(cfg, setup)
+    renderer.load_state_dict(prefixed_state(ckpt, "renderer."))
+    metrics_path = path / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    return _RunFolder(path, ckpt_path, cfg, metrics, setup, renderer.eval())
+
+
 def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: str = "auto") -> Run:
     """Open a reconstruction or stylization folder (or pass a checkpoint file in one) for rendering.
 
@@ -256,15 +306,13 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         checkpoint: the checkpoint to read (``last.ckpt`` for an unfinished run).
         device: auto (CUDA, then MPS, then CPU) | cpu | cuda | cuda:N | mps.
     """
-    import json
-
-    from nerfart_plugin.factories import build_scene, load_run
+    from nerfart_plugin.factories import build_scene
     from nerfart_plugin.utils.device import pick_device
 
     folder = Path(folder).expanduser()
     if folder.suffix == ".ckpt":
         folder, checkpoint = folder.parent, folder.name
-    loaded = load_run(folder, checkpoint)
+    loaded = _read_run_folder(folder, checkpoint)
     cfg = loaded.cfg
     kind = "stylization" if (loaded.metrics.get("prompt") is not None or folder.parent.name == "stylizations") \
         else "reconstruction"

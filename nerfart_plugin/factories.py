@@ -1,4 +1,5 @@
-"""The public seam: build what a run is made of from its config.
+"""The public seam: build what a run is made of from its config (a finished run opens with
+:func:`nerfart_plugin.api.open_run`).
 
 The stages (:mod:`nerfart_plugin.stages`), the benchmarks, the notebook and the tests all
 build through these, so none of them re-wires the pieces::
@@ -7,12 +8,10 @@ build through these, so none of them re-wires the pieces::
     scene = build_scene(cfg)                                     # validated config + loaded scene + setup
     system = build_reconstruction_system(scene)                  # a LightningModule
     train_steps(system, 100, scene.device)                       # nerfart_plugin.fit
-    run = load_run("outputs/reconstructions/<run>")              # a finished run's renderer and metrics
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -23,7 +22,6 @@ from omegaconf import DictConfig
 
 from nerfart_plugin.checkpoints import META_KEY, check_fits, checkpoint_meta, load_checkpoint, prefixed_state
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.schema import RunConfig, parse_config
 from nerfart_plugin.systems.scene_setup import SceneSetup
 
@@ -251,47 +249,4 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
 
 
 # ---------------------------------------------------------------------- finished runs
-@dataclass
-class LoadedRun:
-    """A run folder read back: its config, metrics and renderer (on the CPU, eval mode).
-
-    Attributes:
-        path: the run folder; checkpoint: the file the renderer was read from.
-        cfg: its typed config; metrics: its ``metrics.json`` ({} if none).
-        setup: the scene setup it was trained with (from the checkpoint's record).
-        renderer: the trained renderer.
-    """
-
-    path: Path
-    checkpoint: Path
-    cfg: RunConfig
-    metrics: dict
-    setup: SceneSetup
-    renderer: Any
-
-
-def load_run(run_dir: Path | str, checkpoint: str = "final.ckpt") -> LoadedRun:
-    """Read a reconstruction or stylization folder: ``config.yaml``, ``metrics.json`` and the renderer of
-    ``checkpoint`` (``last.ckpt`` for an unfinished run), rebuilt from the checkpoint's model record."""
-    from omegaconf import OmegaConf
-
-    path = Path(run_dir)
-    ckpt_path = path / checkpoint
-    if not (path / "config.yaml").is_file() or not ckpt_path.is_file():
-        raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point load_run at "
-                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
-    cfg, _ = typed(OmegaConf.load(path / "config.yaml"))
-    ckpt = load_checkpoint(ckpt_path, fix=f"If {ckpt_path.name} was damaged, run the command that made this run "
-                                          "again: it sets the damaged file aside and trains again from the run's "
-                                          "last.ckpt (nothing else in the folder is touched).")
-    meta = ckpt.get(META_KEY)
-    if not isinstance(meta, dict) or "setup" not in meta:
-        raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "
-                           "with build_scene(cfg) and load_renderer_state(checkpoint, scene).")
-    setup = SceneSetup(**meta["setup"])
-    renderer = build_renderer(cfg, setup)
-    renderer.load_state_dict(prefixed_state(ckpt, "renderer."))
-    metrics_path = path / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    return LoadedRun(path, ckpt_path, cfg, metrics, setup, renderer.eval())
 

@@ -45,17 +45,17 @@ def nerf_final(shared_runs) -> Path:
 
 
 @pytest.mark.slow
-def test_load_run_reads_a_finished_reconstruction_back(nerf_final):
-    from nerfart_plugin.factories import load_run
+def test_open_run_reads_a_finished_reconstruction_back(nerf_final):
+    from nerfart_plugin.api import open_run
 
-    run = load_run(nerf_final.parent)
-    assert run.cfg.backbone["name"] == "nerf" and run.cfg.reconstruct.steps == 12 and "psnr" in run.metrics
-    assert run.setup.bound == 1.0 and run.checkpoint == nerf_final
+    run = open_run(nerf_final.parent, device="cpu")
+    assert run.config.backbone["name"] == "nerf" and run.config.reconstruct.steps == 12 and "psnr" in run.metrics
+    assert run.renderer.field.bound == 1.0 and run.checkpoint == nerf_final
     rays = {"rays_o": torch.tensor([[0.0, 0.0, -3.0]]), "rays_d": torch.tensor([[0.0, 0.0, 1.0]]),
             "near": torch.tensor([0.5]), "far": torch.tensor([5.0])}
     assert torch.isfinite(run.renderer.render_chunked(rays)["rgb"]).all()
     with pytest.raises(NerfArtError, match="not a run folder"):
-        load_run(nerf_final.parent.parent)
+        open_run(nerf_final.parent.parent)
 
 
 def _step(ckpt: Path) -> int:
