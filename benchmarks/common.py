@@ -335,11 +335,12 @@ def is_oom(exc: BaseException) -> bool:
 
 
 def run_child(script: Path, payload: dict[str, Any], timeout: float) -> dict[str, Any]:
-    """Run ``python script --child JSON`` and return the dict it prints on a ``RESULT {...}`` line.
+    """Run ``python -m benchmarks <script's name> --child JSON`` (from the repository root) and return the dict it
+    prints on a ``RESULT {...}`` line.
 
     On timeout returns ``{"status": "timeout"}``; on a crash ``{"status": "error", "error": ...}``.
     """
-    cmd = [sys.executable, str(script), "--child", json.dumps(payload)]
+    cmd = [sys.executable, "-m", "benchmarks", Path(script).stem, "--child", json.dumps(payload)]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=str(ROOT))
     except subprocess.TimeoutExpired:
