@@ -43,6 +43,7 @@ def test_imagenet_guide_raises_the_judge_on_heldout_views(tmp_path: Path) -> Non
     assert "VERIFICATION" in m["WARNING"] and m["guidance"] == "imagenet"
 
 
+@pytest.mark.slow  # two end-to-end runs
 def test_the_judge_runs_with_any_guidance_when_the_prompt_names_a_class(tmp_path: Path) -> None:
     from pipeline_helpers import tiny_cfg
 
