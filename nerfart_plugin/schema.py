@@ -4,10 +4,11 @@
   ``render`` (+ ``render.occupancy``), ``reconstruct``, ``stylize``, ``export``,
   ``trainer`` and ``experiment`` (every loss weight). Each field has its type, its
   default, its range and a description (units, what 0 / null means). ``conf/`` does
-  not repeat them: :func:`register_schema` stores :func:`defaults_node` in Hydra's
-  ConfigStore as ``nerfart_schema``, the first entry of ``conf/config.yaml``'s defaults
-  list, so presets, experiments and command-line overrides compose on top of it,
-  ``--cfg job`` prints it and ``--help`` lists every field with its description.
+  not repeat them: :func:`~nerfart_plugin.config_help.register_schema` stores their
+  defaults in Hydra's ConfigStore as ``nerfart_schema``, the first entry of
+  ``conf/config.yaml``'s defaults list, so presets, experiments and command-line
+  overrides compose on top of it, ``--cfg job`` prints it and ``--help`` lists every
+  field with its description.
 * :func:`check_settings` checks a composed config (a plain dict) before any data,
   weights or training is touched, and raises ONE :class:`~nerfart_plugin.errors.ConfigError`
   listing every violation as ``key=value: what is allowed (how to turn it off)``;
