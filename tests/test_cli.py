@@ -345,6 +345,9 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
     for f in (REPO / "nerfart_plugin" / "assets").rglob("*"):
         if f.is_file():
             expected.add(f.relative_to(REPO).as_posix())
+    # every module of the package, subpackages included (the web viewer was once left out)
+    expected |= {f.relative_to(REPO).as_posix() for f in (REPO / "nerfart_plugin").rglob("*.py")
+                 if "__pycache__" not in f.parts}
     missing = sorted(expected - names)
     assert not missing, missing
     assert any(n.startswith("nerfart_plugin/assets/head/images/") for n in names)
