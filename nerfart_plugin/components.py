@@ -1,6 +1,6 @@
 """Typed configs of the pluggable components, declared beside each component.
 
-A component built from config (a data loader, and in time each backbone, encoding and guide) carries its
+A component built from config (a data loader, backbone, encoding, guide or perceptual network) carries its
 ``Config``: a pydantic model whose fields are the user's settings, each with its default, its valid range
 and its meaning (:func:`~nerfart_plugin.config_types.Setting`). The schema composes these models to check a
 run's config before any work (:mod:`nerfart_plugin.schema`), ``--help`` lists them, and the component reads
@@ -35,6 +35,12 @@ class ComponentConfig(BaseModel):
 
     #: where these settings live in a run's config (error messages name ``<section>.<key>``)
     section: ClassVar[str] = ""
+
+    @classmethod
+    def key(cls) -> str:
+        """The last part of :attr:`section`: the sub-section a guide's settings live in (``clip`` for
+        ``guidance.clip``)."""
+        return cls.section.rsplit(".", 1)[-1]
 
     @classmethod
     def build(cls: type[C], cfg: Union[C, Mapping[str, Any], None] = None, **options: Any) -> C:

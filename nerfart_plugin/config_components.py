@@ -130,7 +130,7 @@ def guidance_parts() -> dict[str, type[BaseModel]]:
     for kind in ("guidance", "perceptual"):
         for name in registry.names(kind):
             config = config_of(registry.get(kind, name))
-            parts[config.section.split(".", 1)[1]] = config
+            parts[config.key()] = config
     return parts
 
 

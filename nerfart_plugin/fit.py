@@ -14,6 +14,7 @@ renames it to ``final.ckpt`` on rank 0 once the stage's outputs are written.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -161,8 +162,6 @@ def stage_final(result: FitResult, folder: RunFolder) -> Optional[Path]:
 def publish_final(staged: Path, folder: RunFolder) -> Path:
     """``final.ckpt``, the mark of a finished run: the staged state renamed into place (atomically, after the
     stage's outputs), with its content hash beside it."""
-    import os
-
     from nerfart_plugin.runs import write_checkpoint_hash
 
     with open(staged, "rb") as fh:

@@ -49,7 +49,7 @@ class Encoding(nn.Module):
     #: gradients by finite differences (``grad_type=auto``)
     slow_double_backward: bool = False
 
-    def __init__(self, cfg: Optional[Any], options: dict[str, Any]) -> None:
+    def __init__(self, cfg: Optional[Any] = None, **options: Any) -> None:
         super().__init__()
         self.cfg = type(self).Config.build(cfg, **options)
 
@@ -85,7 +85,7 @@ class FrequencyEncoding(Encoding):
         include_input: bool = Setting(True, description="also pass x itself")
 
     def __init__(self, cfg: Optional[Any] = None, *, bound: float = 1.0, in_dim: int = 3, **options: Any) -> None:
-        super().__init__(cfg, options)
+        super().__init__(cfg, **options)
         self.bound = float(bound)
         self.n_input_dims = in_dim
         self.n_freqs = int(self.cfg.n_freqs)
@@ -168,7 +168,7 @@ class TensorVMGridEncoding(Encoding):
             AUTO_CELL_PIXELS, description="with resolution=auto: training-image pixels one grid cell spans")
 
     def __init__(self, cfg: Optional[Any] = None, *, bound: float = 1.0, **options: Any) -> None:
-        super().__init__(cfg, options)
+        super().__init__(cfg, **options)
         c = self.cfg
         resolution, levels, n_components, out_features = c.resolution, c.levels, c.n_components, c.out_features
         if resolution == "auto":  # built without a scene setup (which decides it and reads cell_pixels): the floor
@@ -255,7 +255,7 @@ class SHEncoding(Encoding):
         degree: Annotated[Int, Limits(ge=1, le=4)] = Setting(4, description="bands: 1..4 -> 1, 4, 9, 16 features")
 
     def __init__(self, cfg: Optional[Any] = None, *, bound: float = 1.0, **options: Any) -> None:
-        super().__init__(cfg, options)
+        super().__init__(cfg, **options)
         degree = self.cfg.degree
         self.degree = int(degree)
         self.n_output_dims = self.degree**2

@@ -28,6 +28,7 @@ from torch import nn
 
 from nerfart_plugin import registry
 from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", "toy")
+from nerfart_plugin.components import config_of
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
@@ -70,19 +71,12 @@ def _common(cfg: Any) -> tuple[Any, dict[str, Any]]:
     return section(GuidanceCommon, c, prefix="guidance"), c
 
 
-def settings_key(component: Any) -> str:
-    """The key of the ``guidance`` section that holds ``component``'s settings (``clip`` for ``guidance.clip``)."""
-    from nerfart_plugin.components import config_of
-
-    return config_of(component).section.split(".", 1)[1]
-
-
 def build_guidance(cfg: Any) -> Guidance:
     """Build the guide named ``cfg["name"]`` from its sub-section (``guidance.<name>``, checked by its ``Config``)
     and the section's weights policy."""
     common, c = _common(cfg)
     cls = registry.get("guidance", common.name)  # ConfigError listing valid names
-    return cls(c.get(settings_key(cls)), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
+    return cls(c.get(config_of(cls).key()), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
 
 
 def build_perceptual(cfg: Any) -> nn.Module:
@@ -92,4 +86,4 @@ def build_perceptual(cfg: Any) -> nn.Module:
     common, c = _common(cfg)
     kind = common.perceptual or registry.get("guidance", common.name).default_perceptual
     cls = registry.get("perceptual", kind)
-    return cls(c.get(settings_key(cls)), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
+    return cls(c.get(config_of(cls).key()), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
