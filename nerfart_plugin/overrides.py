@@ -26,6 +26,7 @@ Two things Hydra's override grammar gets in the way of:
 
 from __future__ import annotations
 
+import functools
 import logging
 import re
 from dataclasses import dataclass, field
@@ -176,9 +177,7 @@ def primary_config(argv: list[str]) -> PrimaryConfig:
     """Compose the primary config with the group selections of ``argv`` (each option of a swept group) and
     collect its keys and defaults-list groups. Falls back to the top-level keys and groups of ``conf/`` when
     composition fails (Hydra then reports the bad selection itself)."""
-    from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
-    from omegaconf import OmegaConf
 
     from nerfart_plugin.config_paths import config_dir, primary_keys
 
@@ -186,17 +185,29 @@ def primary_config(argv: list[str]) -> PrimaryConfig:
     groups = {p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith(("_", ".", "hydra"))}
     found = PrimaryConfig()
     try:
-        with initialize_config_dir(config_dir=str(root), version_base="1.3"):
-            for overrides in _group_choices(argv, groups):
-                cfg = compose("config", overrides=overrides, return_hydra_config=True)
-                found.groups |= set(cfg.hydra.runtime.choices.keys())
-                plain = OmegaConf.to_container(cfg, resolve=False)
-                plain.pop("hydra", None)
-                found.keys |= set(_dotted_keys(plain))
+        for overrides in _group_choices(argv, groups):
+            keys, chosen_groups = _composed_keys(str(root), tuple(overrides))
+            found.keys |= keys
+            found.groups |= chosen_groups
     except (HydraException, ValueError, KeyError) as exc:
         log.debug("could not compose the primary config for +key folding (%s); using its top-level keys", exc)
         found = PrimaryConfig(keys=primary_keys(), groups=groups, complete=False)
     return found
+
+
+@functools.lru_cache(maxsize=64)
+def _composed_keys(root: str, overrides: tuple[str, ...]) -> tuple[frozenset[str], frozenset[str]]:
+    """The dotted keys and the defaults-list groups of the config in ``root`` composed with ``overrides`` (group
+    selections only). Remembered per process: an in-process caller (a notebook, the test suite) that normalizes
+    many command lines composes each selection once."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=root, version_base="1.3"):
+        cfg = compose("config", overrides=list(overrides), return_hydra_config=True)
+    plain = OmegaConf.to_container(cfg, resolve=False)
+    plain.pop("hydra", None)
+    return frozenset(_dotted_keys(plain)), frozenset(cfg.hydra.runtime.choices.keys())
 
 
 def fold_plus(arg: str, primary: PrimaryConfig) -> str:
