@@ -116,8 +116,9 @@ class GuidanceCommon(BaseModel):
     name: str = Setting("clip", description="the guidance: clip | imagenet | toy (the registry's guidance names)")
     allow_random_weights: bool = Setting(False, description="tests only: random CLIP/VGG weights (outputs stamped)")
     allow_download: Optional[bool] = Setting(None, description="fetch missing weights; null: env NERFART_ALLOW_DOWNLOAD")
-    perceptual: Optional[Literal["vgg", "edges", "imagenet"]] = Setting(
-        None, description="Eq. 9 features; null: vgg for clip, edges for toy, imagenet for imagenet")
+    perceptual: Optional[str] = Setting(
+        None, description="Eq. 9 features: vgg | edges | imagenet (the registry's perceptual networks); null: the "
+        "guide's own (vgg for clip, edges for toy, imagenet for imagenet)")
 
 
 def guidance_parts() -> dict[str, type[BaseModel]]:
@@ -144,6 +145,8 @@ def check_guidance(cfg: Any) -> tuple[dict, list[Issue]]:
         common = GuidanceCommon.model_validate(cfg).model_dump(exclude_unset=True)
     except ValidationError as exc:
         return cfg, issues_from(exc, GuidanceCommon, cfg, "guidance")
+    if common.get("perceptual") is not None:
+        issues += _registered("perceptual", common["perceptual"], "guidance.perceptual")[1]
     parts = guidance_parts()
     out = {k: common[k] for k in _GUIDANCE_KEYS if k in common}
     for key, value in cfg.items():

@@ -219,16 +219,32 @@ def negatives_of(style: Style, spec: str) -> list:
     return resolve_negatives(spec, style.guidance, style.prompt)
 
 
-def stylize_settings(scene: SceneContext):
-    """The ``stylize`` section with ``resolution: auto`` (the loaded images' long side: the data resolution
-    policy, 256x256 head, 270x480 selfies) and ``epochs`` (steps = epochs x training views) resolved."""
+def stylize_settings(scene: SceneContext, style: Optional[Style] = None):
+    """The ``stylize`` section with its ``auto`` settings and ``epochs`` resolved: ``resolution`` (the loaded
+    images' long side: the data resolution policy, 256x256 head, 270x480 selfies), ``steps`` (epochs x training
+    views) and, given the ``style``, ``negative_threshold`` (the guide's own)."""
+    from nerfart_plugin.guidance import default_negative_threshold
+
     sc = scene.cfg.stylize
     update: dict[str, Any] = {}
     if sc.resolution == "auto":
         update["resolution"] = max(scene.scene.height, scene.scene.width)
     if sc.epochs:
         update["steps"] = int(sc.epochs) * len(scene.scene.train_ids)
+    if style is not None and sc.negative_threshold == "auto":
+        update["negative_threshold"] = default_negative_threshold(style.guidance)
     return sc.model_copy(update=update)
+
+
+def style_choices(style: Style, settings: Any) -> dict[str, Any]:
+    """What the style's ``auto`` settings became (:mod:`nerfart_plugin.auto`): the source prompt, the view size,
+    the negatives (where they came from and how many) and the threshold that excludes near-synonyms."""
+    from nerfart_plugin.guidance import negatives_origin
+
+    spec = settings.negatives
+    return {"source_prompt": style.source_prompt, "stylize.resolution": settings.resolution,
+            "stylize.negatives": f"{negatives_origin(spec, style.guidance)}: {len(negatives_of(style, spec))} prompts",
+            "stylize.negative_threshold": settings.negative_threshold}
 
 
 def build_stylization_system(scene: SceneContext, source_state: dict, style: Optional[Style] = None,
@@ -237,8 +253,9 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     renderer tensors, :func:`load_renderer_state`); ``style``: from :func:`build_style` by default."""
     from nerfart_plugin.systems.stylization import StylizationSystem
 
-    c, sc = scene.cfg, stylize_settings(scene)
+    c = scene.cfg
     style = style or build_style(c)
+    sc = stylize_settings(scene, style)
     views = scene.views(scene.scene.train_ids, sc.resolution)
     return StylizationSystem(cfg=sc, experiment=c.experiment, backbone_cfg=c.backbone, encoding_cfg=c.encoding,
                              render_cfg=c.render, setup=scene.setup, source_state=source_state, views=views,

@@ -28,7 +28,9 @@ import torch
 from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_renderer,
-                                      build_stylization_system, load_renderer_state, stylize_settings)
+                                      build_stylization_system, load_renderer_state, style_choices,
+                                      stylize_settings)
+from nerfart_plugin.auto import component_choices, recorded
 from nerfart_plugin.fit import FitResult, fit_stage, publish_final, stage_final
 from nerfart_plugin.runs import RunFolder, config_hash, slug
 from nerfart_plugin.schema import component_result_settings, result_settings
@@ -88,6 +90,7 @@ class TrainingStage:
             return StageResult(self.folder.final)
         self.clock.seconds["fit"] = round(fit.seconds, 3)
         metrics = self.outputs(system, fit)
+        metrics["auto"] = recorded(self.scene.cfg, self.auto_choices(system, fit))
         metrics["stage_seconds"] = self.clock.seconds
         write_cameras(self.scene, self.folder.path)
         atomic_write_json(self.folder.path / "metrics.json", metrics)
@@ -115,6 +118,15 @@ class TrainingStage:
         return [LiveViewer(cams, host=vc.host, port=vc.port, render_share=vc.render_share,
                            chunk=self.scene.cfg.render.chunk, folder=self.folder.path, title=self.folder.what,
                            photos=thumbnails(scene.images.numpy()))]
+
+    def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        """What the run's ``auto`` settings became (:mod:`nerfart_plugin.auto`): the scene's, the data's, the
+        compute's and the components' (the field, and for a stylization its guide and perceptual network)."""
+        scene = self.scene.scene
+        return {**self.scene.setup.auto_choices(), "data.resolution": max(scene.height, scene.width),
+                "device": self.scene.device, "trainer.strategy": type(fit.trainer.strategy).__name__,
+                **component_choices(self.scene.device, [system.field, getattr(system, "guidance", None),
+                                                        getattr(system, "perceptual", None)])}
 
     def build_system(self) -> Any:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -225,10 +237,12 @@ class StylizeStage(TrainingStage):
         super().__init__(scene)
         c = scene.cfg
         self.style, self.source = style, source
-        self.settings = stylize_settings(scene)
+        self.settings = stylize_settings(scene, style)
         self.key = config_hash({"recon": source_key, "prompt": style.prompt, "source_prompt": style.source_prompt,
                                 "guidance": c.guidance, "experiment": result_settings(c.experiment),
-                                "stylize": result_settings(self.settings), "trainer": result_settings(c.trainer),
+                                # as keyed before the threshold was resolved here: existing runs keep their keys
+                                "stylize": result_settings(stylize_settings(scene)),
+                                "trainer": result_settings(c.trainer),
                                 "seed": c.seed})
         name = f"{slug(style.raw_prompt)}-{c.backbone['name']}-{self.key}{style.stamp}"
         self.folder = RunFolder(scene.root / "stylizations" / name, "stylization")
@@ -271,6 +285,9 @@ class StylizeStage(TrainingStage):
 
     def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
         return {k: v for k, v in metrics.items() if k.startswith(("clip_", "view_", "mesh_"))}
+
+    def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        return {**super().auto_choices(system, fit), **style_choices(self.style, self.settings)}
 
     @torch.no_grad()
     def heldout_metrics(self, system: Any) -> dict[str, Any]:
@@ -518,6 +535,7 @@ class RenderStage:
         resolution = None if rc.resolution == "auto" else int(rc.resolution)
         path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
         summary = run.write_render(run.render_folder(path), path, channels=rc.channels, fps=rc.fps, png=rc.png)
+        summary["auto"] = recorded(self.cfg, {"render.resolution": max(path.width, path.height)})
         return StageResult(run.checkpoint, summary)
 
 

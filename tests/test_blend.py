@@ -165,3 +165,29 @@ def test_mix_settings_are_checked_before_any_work():
     text = issues("stage=all", "mix.runs=[a]", "mix.weights=[0.5]", "strength=0.5")
     assert "strength=0.5: with mix.runs" in text and "add stage=render or stage=export" in text
     assert "mix.weights=[3]" in issues("stage=export", "mix.runs=[a]", "mix.weights=[3]")
+
+
+@pytest.mark.slow
+def test_a_run_records_what_each_auto_setting_became(styles):
+    """The stylization's metrics.json names a concrete value for every setting that was ``auto`` in its config,
+    except the two that other outputs record (stage=render's resolution, a sweep's objective)."""
+    import json
+
+    import yaml
+
+    from nerfart_plugin.guidance import default_negative_threshold
+    from nerfart_plugin.guidance.toy import ToyGuidance
+    from nerfart_plugin.utils.device import pick_device
+
+    from test_auto import _auto_keys
+
+    run = styles["red"]
+    block = json.loads((run / "metrics.json").read_text())["auto"]
+    was_auto = _auto_keys(yaml.safe_load((run / "config.yaml").read_text())) - {"render.resolution", "objective"}
+    assert set(block) == was_auto
+    assert all(v is not None and v != "auto" for v in block.values()), block
+    assert block["device"] == str(pick_device()) and block["trainer.strategy"] == "SingleDeviceStrategy"
+    assert block["stylize.negative_threshold"] == default_negative_threshold(ToyGuidance())
+    assert block["stylize.negatives"].startswith("package: ") and block["source_prompt"] == "a photo of a person"
+    assert "data.resolution" not in block and "stylize.resolution" not in block  # the command set them (TINY)
+    assert block["encoding.levels"] >= 1 and 128 <= block["encoding.resolution"] <= 512

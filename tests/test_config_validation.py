@@ -505,3 +505,20 @@ def test_every_stage_has_one_plan():
     assert sorted(PLANS) == sorted(get_args(RunConfig.model_fields["stage"].annotation))
     assert [p for p, plan in PLANS.items() if plan.needs_prompt] == ["stylize", "all", "preview"]
     assert [p for p, plan in PLANS.items() if plan.multi_device] == ["reconstruct"]
+
+
+def test_a_registered_perceptual_network_is_picked_by_name(monkeypatch):
+    """``guidance.perceptual`` names any network of the ``perceptual`` registry (a plugin's too), and a typo gets
+    the closest registered name."""
+    from nerfart_plugin import registry
+    from nerfart_plugin.guidance import build_perceptual
+    from nerfart_plugin.guidance.vgg import EdgePerceptual
+
+    class GrayEdges(EdgePerceptual):
+        name = "gray_edges"
+
+    registry.names("perceptual")  # the package's own networks first
+    monkeypatch.setitem(registry._REGISTRY["perceptual"], "gray_edges", GrayEdges)
+    out = validate_config(cfg("guidance=toy", "guidance.perceptual=gray_edges", "stage=reconstruct"))
+    assert type(build_perceptual(out["guidance"])) is GrayEdges
+    assert "did you mean gray_edges?" in error_of("guidance=toy", "guidance.perceptual=gray_edge")

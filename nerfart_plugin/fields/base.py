@@ -374,6 +374,10 @@ class SDFField(NeuralField):
         color_in = self.feature_dim + 3 * int(self.color_normal) + self.dir_encoding.n_output_dims
         self.color_net = make_mlp(color_in, self.color_hidden_dim, 3, self.color_layers)
 
+    def auto_choices(self, device: torch.device) -> dict[str, str]:
+        """What ``backbone.grad_type=auto`` became (:mod:`nerfart_plugin.auto`)."""
+        return {"backbone.grad_type": self.grad_type}
+
     def _geo(self, x: Tensor) -> Tensor:
         """``[sdf, features]`` [N, 1 + feature_dim] of points x [N,3], in the weights' precision under any
         autocast.

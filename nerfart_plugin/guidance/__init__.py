@@ -34,6 +34,8 @@ from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
 from nerfart_plugin.guidance.prompts import (
     NegativeSampler,
+    default_negative_threshold,
+    negatives_origin,
     augment_prompt,
     default_source_prompt,
     load_negatives,
@@ -50,6 +52,8 @@ __all__ = [
     "Perceptual",
     "EdgePerceptual",
     "NegativeSampler",
+    "default_negative_threshold",
+    "negatives_origin",
     "augment_prompt",
     "default_source_prompt",
     "load_negatives",

@@ -42,6 +42,7 @@ from nerfart_plugin.config_types import Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
+from nerfart_plugin.auto import dtype_name
 from nerfart_plugin.guidance.precision import LowPrecisionWeights, Precision, check_precision, compute_dtype
 from nerfart_plugin.registry import register
 
@@ -370,6 +371,10 @@ class CLIPGuidance(Guidance):
     def compute_dtype(self, device: torch.device) -> torch.dtype:
         """The dtype image encoding runs in on ``device`` (see ``precision``)."""
         return compute_dtype(self.precision, device, "guidance.clip.precision")
+
+    def auto_choices(self, device: torch.device) -> dict[str, str]:
+        """What ``guidance.clip.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.auto`)."""
+        return {"guidance.clip.precision": dtype_name(self.compute_dtype(device))}
 
     def _net_image(self, x: Tensor) -> Tensor:
         """The image tower on preprocessed ``x`` [B,3,S,S] in ``compute_dtype``; float32 [B,D]."""

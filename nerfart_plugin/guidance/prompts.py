@@ -142,6 +142,24 @@ def load_negatives(path: str | Path | None = None) -> list[str]:
     return [t for _, t in load_negative_pairs(path)]
 
 
+#: ``stylize.negative_threshold=auto`` for a guide without its own: CLIP ViT-B/32 text-text cosines are
+#: ~0.6-0.8 for unrelated short prompts and ~0.9 for near-synonyms
+DEFAULT_NEGATIVE_THRESHOLD = 0.85
+
+
+def negatives_origin(spec: str | None, guidance: Guidance) -> str:
+    """Where the negatives of ``stylize.negatives=spec`` come from, in words (see :func:`resolve_negatives`)."""
+    if spec in (None, "", "auto"):
+        return "the guide's own list" if callable(getattr(guidance, "default_negatives", None)) else "package"
+    return spec
+
+
+def default_negative_threshold(guidance: Guidance) -> float:
+    """``stylize.negative_threshold=auto``: the guide's ``negative_threshold`` (text-text cosine above which a
+    negative counts as a synonym of the target), else :data:`DEFAULT_NEGATIVE_THRESHOLD`."""
+    return float(getattr(guidance, "negative_threshold", DEFAULT_NEGATIVE_THRESHOLD))
+
+
 def resolve_negatives(spec: str | None, guidance: Guidance, prompt: str) -> list[tuple[str, str]]:
     """The negatives ``stylize.negatives`` names, as ``(category, prompt)`` pairs.
 
@@ -251,7 +269,7 @@ class NegativeSampler:
         if num_per_step is not None and num_per_step < 1:
             raise ConfigError(f"stylize.num_negatives must be >= 1 or null, got {num_per_step}")
         if threshold is None:
-            threshold = float(getattr(guidance, "negative_threshold", 0.85))
+            threshold = default_negative_threshold(guidance)
         target_prompt = validate_prompt(target_prompt)
         pairs = [p if isinstance(p, tuple) else ("", p) for p in negatives]
         pairs = list({t: (c, t) for c, t in reversed(pairs)}.values())[::-1]  # dedupe, first kept

@@ -34,6 +34,7 @@ from nerfart_plugin.config_types import Int, Limits, Setting
 from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
+from nerfart_plugin.auto import dtype_name
 from nerfart_plugin.guidance.precision import Precision, check_precision, compute_dtype
 from nerfart_plugin.registry import register
 
@@ -188,6 +189,10 @@ class Perceptual(nn.Module):
     def compute_dtype(self, device: torch.device) -> torch.dtype:
         """The dtype the trunk runs in on ``device`` (see ``precision``)."""
         return compute_dtype(self.precision, device, "guidance.vgg.precision")
+
+    def auto_choices(self, device: torch.device) -> dict[str, str]:
+        """What ``guidance.vgg.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.auto`)."""
+        return {"guidance.vgg.precision": dtype_name(self.compute_dtype(device))}
 
     def features(self, img: Tensor) -> list[Tensor]:
         """``img`` [B,3,H,W] in [0,1] -> activations of ``self.layers`` (in that order),

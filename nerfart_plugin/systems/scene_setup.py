@@ -69,6 +69,14 @@ class SceneSetup:
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
 
+    def auto_choices(self) -> dict[str, Any]:
+        """What the scene's ``auto`` settings became (setting -> value; :mod:`nerfart_plugin.auto`)."""
+        return {"render.background_model": self.background_model,
+                "render.occupancy.enabled": self.occupancy_resolution > 0,
+                "render.occupancy.sampling": self.occupancy_sampling,
+                "encoding.resolution": self.grid_resolution, "encoding.levels": self.grid_levels,
+                "reconstruct.mask_ray_share": self.mask_ray_share or 0.0}
+
 
 def pixels_per_unit(scene: Scene, ndc: bool) -> float:
     """Image pixels per unit of field coordinates where the scene is: in NDC, the long image side over the
