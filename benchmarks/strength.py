@@ -15,8 +15,7 @@ which stylizes the shipped head toward three prompts from one reconstruction), a
 
 Then a 50/50 mix of the first two runs: both targets' probabilities (they should lie between the
 source and each pure run). Pictures for the docs: a strength strip (``docs/images/strength_strip.png``)
-and source | A | mix | B (``docs/images/mix.png``); and the README's gallery: per run, source |
-stylized | geometry (``docs/images/gallery.png``).
+and source | A | mix | B (``docs/images/mix.png``). The README's gallery comes from ``docs/make_gallery.py``.
 
     python -m benchmarks strength                                   # the main-job benchmark's runs
     python -m benchmarks strength --runs outputs/stylizations/A outputs/stylizations/B
@@ -161,22 +160,6 @@ def strength_strip(folder: Path) -> None:
     save_image(image_grid(tiles, ncols=len(tiles)), IMAGES / "strength_strip.png")
 
 
-def gallery(folders: Sequence[Path]) -> None:
-    """``docs/images/gallery.png``: per run, one held-out view as source | stylized | stylized normals."""
-    from nerfart_plugin.api import open_run
-    from nerfart_plugin.export.video import image_grid, label_image, save_image
-
-    tiles = []
-    for folder in folders:
-        run = open_run(folder, device="cpu")
-        view = run.metrics["judge"]["views"][1]
-        sty = run.render(view, channels=("rgb", "normal"))
-        tiles += [label_image(run.source.render(view, resolution=run.resolution)["rgb"], "source"),
-                  label_image(sty["rgb"], run.metrics["prompt"]), label_image(sty["normal"], "geometry")]
-    IMAGES.mkdir(parents=True, exist_ok=True)
-    save_image(image_grid(tiles, ncols=3), IMAGES / "gallery.png")
-
-
 # --------------------------------------------------------------------------- report
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     body = ["Each stylization run at strengths s (θ = θ_src + s·(θ_run − θ_src), the occupancy grid re-estimated "
@@ -225,7 +208,7 @@ def default_runs() -> list[Path]:
 
 
 def measure(folders: Sequence[Path]) -> dict[str, Any]:
-    """The curve of every finished run, the mix of the first two, and the pictures."""
+    """The curve of every finished run, the mix of the first two, and their pictures."""
     from nerfart_plugin.evaluation import ImageNetJudge
 
     runs = [r for r in folders if (r / "final.ckpt").is_file()]
@@ -236,7 +219,6 @@ def measure(folders: Sequence[Path]) -> dict[str, Any]:
     if len(runs) >= 2:
         raw["mix"] = measure_mix(runs[0], runs[1], judge)
     strength_strip(runs[0])
-    gallery(runs)
     return raw
 
 

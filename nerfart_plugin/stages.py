@@ -437,15 +437,19 @@ def preview_scene(scene: SceneContext) -> SceneContext:
 
 
 def log_preview(folder: Path, metrics: dict[str, Any]) -> None:
-    """One line a user reads: did the prompt move the judge, where is the picture."""
+    """One line a user reads: how far the guide moved the views toward the prompt (any prompt; compare prompts by
+    it), the judge's verdict where the prompt names an ImageNet class, and where the picture is."""
+    direction = metrics.get("clip_directional_similarity")
+    guide = "" if direction is None else f"the guide's directional similarity {direction:.3f} (higher: a stronger " \
+                                         "full run, to compare prompts by); "
     judge = metrics.get("judge") or {}
     if "stylized" in judge:
-        log.info("preview of %r: the judge's P(%s) %.4f -> %.4f, top-5 on %.0f%% -> %.0f%% of the held-out views; "
-                 "see %s", metrics.get("prompt"), judge["target_class"], judge["source"]["mean_target_prob"],
-                 judge["stylized"]["mean_target_prob"], 100 * judge["source"]["top5_rate"],
-                 100 * judge["stylized"]["top5_rate"], folder / "preview.png")
+        log.info("preview of %r: %sthe judge's P(%s) %.4f -> %.4f, top-5 on %.0f%% -> %.0f%% of the held-out "
+                 "views; see %s", metrics.get("prompt"), guide, judge["target_class"],
+                 judge["source"]["mean_target_prob"], judge["stylized"]["mean_target_prob"],
+                 100 * judge["source"]["top5_rate"], 100 * judge["stylized"]["top5_rate"], folder / "preview.png")
     else:
-        log.info("preview of %r (judge: %s); see %s", metrics.get("prompt"), judge.get("skipped", "none"),
+        log.info("preview of %r: %sjudge: %s; see %s", metrics.get("prompt"), guide, judge.get("skipped", "none"),
                  folder / "preview.png")
 
 

@@ -411,3 +411,25 @@ def test_step_split_quick(out: Path, shared_data: Path) -> None:
     assert [r.split("|")[1:3] for r in rows] == [[" 16 ", " fused (adam) "], [" 16 ", " plain "],
                                                  [" 32 ", " fused (adam) "], [" 32 ", " plain "]]
     assert all(float(r.split("|")[7]) > 0 for r in rows) and "Fused versus plain, same run" in sec
+
+
+def test_preview_report_ranks_both_predictors_and_the_fresh_prompts_alone():
+    """The preview study's verdicts: the judge gain, the guide's directional similarity over all prompts, and
+    over the prompts it was not picked on; a prompt in neither list counts as fresh."""
+    bench = _load("preview")
+    chosen, fresh = list(bench.CHOSEN_ON[:3]), ["strawberry", "snail", "pizza"]
+    full_gain = {p: g for p, g in zip(chosen + fresh, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6))}
+    previews = [{"prompt": p, "gain": 0.6 - full_gain[p], "top5": 0.0, "directional": full_gain[p], "seconds": 50.0,
+                 "fit_s": 30.0} for p in chosen + fresh]
+    full = [{"prompt": p, "gain": g, "top5": 1.0, "seconds": 600.0} for p, g in full_gain.items()]
+    info = bench.common.machine_info()
+    text = bench.report({"previews": previews, "full": full, "override": []}, info, "cmd")
+    assert "judge gain with the full run's over 6 prompts (0 of them fail in the full run) >= 0.7: **NOT MET** " \
+           "(Spearman -1.00)" in text
+    assert "guide directional similarity with the full run's judge gain over 6 prompts >= 0.7: **MET** " \
+           "(Spearman 1.00" in text
+    assert "over the 3 fresh prompts alone (not seen when it was picked): **MET** (Spearman 1.00)" in text
+    assert "strawberry (fresh)" in text and f"{chosen[0]} (fresh)" not in text
+    old = [{k: v for k, v in p.items() if k != "directional"} for p in previews]  # a raw file from before the field
+    assert "guide directional" not in bench.report({"previews": old, "full": full}, info, "cmd").split(
+        "**Targets**")[1]

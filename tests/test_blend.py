@@ -191,3 +191,23 @@ def test_a_run_records_what_each_auto_setting_became(styles):
     assert block["stylize.negatives"].startswith("package: ") and block["source_prompt"] == "a photo of a person"
     assert "data.resolution" not in block and "stylize.resolution" not in block  # the command set them (TINY)
     assert block["encoding.levels"] >= 1 and 128 <= block["encoding.resolution"] <= 512
+
+
+@pytest.mark.slow
+def test_the_gallery_script_draws_a_row_per_run(styles, tmp_path):
+    """``docs/make_gallery.py``: source | stylized | geometry per run, from the runs' own renders."""
+    import runpy
+
+    from PIL import Image
+
+    from nerfart_plugin.api import open_run
+
+    make = runpy.run_path(str(Path(__file__).resolve().parents[1] / "docs" / "make_gallery.py"))
+    out = make["make_gallery"]([styles["red"], styles["blue"]], tmp_path / "gallery.png")
+    img = np.asarray(Image.open(out))
+    side = open_run(styles["red"], device="cpu").resolution
+    assert img.shape[:2] == (2 * side + 2, 3 * side + 2 * 2)  # 2 rows x 3 tiles, 2 px gaps
+    red, blue = img[:side, side + 2:2 * side + 2], img[side + 2:, side + 2:2 * side + 2]
+    assert not np.array_equal(red, blue)  # each row is its own run
+    with pytest.raises(SystemExit):
+        make["main"](["--runs", str(tmp_path / "nothing")])

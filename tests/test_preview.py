@@ -34,8 +34,12 @@ def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, ca
     assert judge["target_class"] == "zebra" and 0 <= judge["stylized"]["mean_target_prob"] <= 1
     assert result["judge"] == judge
     assert not any(folder.glob("*.mp4")) and not (folder / "mesh").exists()  # no video, no meshes
-    again = run(cfg)["preview"]  # reused, scores reported again
+    caplog.clear()
+    with caplog.at_level("INFO", logger="nerfart_plugin"):
+        again = run(cfg)["preview"]  # reused, scores reported again
     assert again["judge"] == judge
+    line = f"preview of 'zebra': the guide's directional similarity {metrics['clip_directional_similarity']:.3f}"
+    assert line in caplog.text and "the judge's P(zebra)" in caplog.text
 
 
 def test_preview_needs_a_prompt_and_a_sane_size(tmp_path):
