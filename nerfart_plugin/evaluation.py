@@ -272,3 +272,14 @@ def silhouette_iou(opacity_a: torch.Tensor, opacity_b: torch.Tensor, threshold: 
     a, b = opacity_a > threshold, opacity_b > threshold
     union = int((a | b).sum())
     return float((a & b).sum()) / union if union else 1.0
+
+
+def evaluation_views(scene: Any) -> str:
+    """What the reconstruction's PSNR is measured on: "held-out views", or, when no view is truly held out
+    (``data.holdout_every=1``, a one-view capture), a label that says it is a training-view evaluation."""
+    train = set(scene.train_ids or range(scene.num_images))
+    held = scene.val_ids or scene.train_ids[:1]
+    if held and not train & set(held):
+        return "held-out views"
+    return ("TRAINING views: no view is held out (data.holdout_every, or too few views), so this PSNR measures "
+            "the fit to the photos, not new views")

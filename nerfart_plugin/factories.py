@@ -175,6 +175,16 @@ class Style:
     source_prompt: str
     negatives: Optional[tuple[str, list]] = None
 
+    @property
+    def warning(self) -> Optional[str]:
+        """The ``WARNING`` of a stylization's ``metrics.json`` when the guide is not a real CLIP (None when it is)."""
+        if self.stamp.startswith("_VERIFY"):
+            return ("VERIFICATION run: guided by an ImageNet classifier standing in for CLIP, not by CLIP; see the "
+                    "judge block")
+        if not self.real:
+            return "UNSTYLED by a real model: random or toy guidance weights were used"
+        return None
+
 
 def build_style(cfg: Any, guidance: Any = None, perceptual: Any = None) -> Style:
     """Build the guidance of ``cfg`` (first, so missing weights fail before any training) and resolve the

@@ -30,8 +30,9 @@ from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.factories import SceneContext, Style, build_scene, build_style, check_style
 from nerfart_plugin.config_issues import show
 from nerfart_plugin.schema import RunConfig, parse_config
-from nerfart_plugin.stages import (ExportStage, PreviewStage, ReconstructStage, RenderStage, StylizeStage,
-                                   stylization_source)
+from nerfart_plugin.output_stages import ExportStage, RenderStage
+from nerfart_plugin.preview import PreviewStage
+from nerfart_plugin.stages import ReconstructStage, StylizeStage, stylization_source
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 
@@ -162,7 +163,7 @@ class Pipeline:
         return result.checkpoint
 
     def preview(self) -> Path:
-        """``stage=preview``: a short low-resolution stylization (:class:`~nerfart_plugin.stages.PreviewStage`)."""
+        """``stage=preview``: a short low-resolution stylization (:class:`~nerfart_plugin.preview.PreviewStage`)."""
         return self.stylize(PreviewStage, "preview")
 
     def export(self) -> None:

@@ -5,7 +5,8 @@
   and why), ``val/`` images, ``mesh/source.ply``, CSV logs.
 * :class:`StylizeStage`: ``stylizations/<prompt>-<backbone>-<key><stamp>/``; ``final.ckpt``,
   ``renders/``, ``heldout/``, ``video<stamp>.mp4``, ``mesh/``, ``metrics.json``.
-* :class:`ExportStage`: meshes of a checkpoint next to it.
+* :class:`~nerfart_plugin.preview.PreviewStage` (``stage=preview``) and the stages that read a finished run
+  (:mod:`nerfart_plugin.output_stages`: render, export) live beside this module.
 
 Both training stages run the same skeleton (:meth:`TrainingStage.run`): reuse a finished
 run, else lock the folder, prepare it, build the system, :func:`~nerfart_plugin.fit.fit_stage`
@@ -25,10 +26,8 @@ from typing import Any, Iterator, Optional
 import numpy as np
 import torch
 
-from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
-from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_renderer,
-                                      build_stylization_system, load_renderer_state, style_choices,
+from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_stylization_system, load_renderer_state, style_choices,
                                       stylize_settings)
 from nerfart_plugin.auto import component_choices, recorded
 from nerfart_plugin.fit import FitResult, fit_stage, publish_final, stage_final
@@ -188,7 +187,7 @@ class ReconstructStage(TrainingStage):
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """Held-out metrics (all views), the scene setup and notes, and ``mesh/source``."""
-        from nerfart_plugin.evaluation import evaluate_views
+        from nerfart_plugin.evaluation import evaluate_views, evaluation_views
 
         system.to(self.scene.device).eval()
         with self.clock.part("evaluation"):
@@ -208,17 +207,6 @@ class ReconstructStage(TrainingStage):
 
     def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
         return {k: v for k, v in metrics.items() if k.startswith(("psnr", "ssim", "evaluated_on"))}
-
-
-def evaluation_views(scene: Any) -> str:
-    """What the reconstruction's PSNR is measured on: "held-out views", or, when no view is truly held out
-    (``data.holdout_every=1``, a one-view capture), a label that says it is a training-view evaluation."""
-    train = set(scene.train_ids or range(scene.num_images))
-    held = scene.val_ids or scene.train_ids[:1]
-    if held and not train & set(held):
-        return "held-out views"
-    return ("TRAINING views: no view is held out (data.holdout_every, or too few views), so this PSNR measures "
-            "the fit to the photos, not new views")
 
 
 # ---------------------------------------------------------------------- stage 2
@@ -277,9 +265,8 @@ class StylizeStage(TrainingStage):
                         "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
                         "source_checkpoint": str(Path(self.source).resolve()),
                         **system.negatives_report()})
-        warning = _unstyled_warning(st)
-        if warning:
-            metrics["WARNING"] = warning
+        if st.warning:
+            metrics["WARNING"] = st.warning
         log.info("stylization done -> %s", self.folder.path)
         return metrics
 
@@ -293,8 +280,8 @@ class StylizeStage(TrainingStage):
     def heldout_metrics(self, system: Any) -> dict[str, Any]:
         """CLIP scores, colour means, edge similarity, silhouette IoU, the judge and the off-surface weight
         on the held-out views (``heldout/`` images saved)."""
-        from nerfart_plugin.evaluation import (clip_scores, edge_similarity, judge_prompt, off_surface_share,
-                                               silhouette_iou)
+        from nerfart_plugin.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
+                                               off_surface_share, silhouette_iou)
 
         system.to(self.scene.device).eval()
         scene = self.scene.scene
@@ -385,93 +372,6 @@ class StylizeStage(TrainingStage):
         return {f"mesh_{k}": v for k, v in m.items()}
 
 
-class PreviewStage(StylizeStage):
-    """``stage=preview``: the stylization of the same source, prompt and losses, shortened to ``preview.steps``
-    steps at ``preview.resolution`` px, without video or meshes, into ``previews/<prompt>-<backbone>-<key>/``:
-    ``preview.png`` (source | preview on the held-out views), ``heldout/`` and ``metrics.json`` with the
-    guide's and the judge's scores. A finished preview is reused (its scores logged again)."""
-
-    reused_message = "this preview is already complete: %s (not recomputed)"
-
-    def __init__(self, scene: SceneContext, style: Style, source: Path, source_key: str) -> None:
-        super().__init__(preview_scene(scene), style, source, source_key)
-        self.folder = RunFolder(scene.root / "previews" / self.folder.path.name, "preview")
-
-    def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
-        from nerfart_plugin.export.video import image_grid, save_image, side_by_side
-
-        with self.clock.part("evaluation"):
-            metrics = self.heldout_metrics(system)
-        _, src, sty = self.heldout_views
-        rows = [side_by_side(a.permute(1, 2, 0), b.permute(1, 2, 0), labels=("source", f"preview, {fit.steps} steps"))
-                for a, b in zip(src, sty)]
-        save_image(image_grid(rows, ncols=1), self.folder.path / "preview.png")
-        metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "steps": fit.steps,
-                        "resolution": self.settings.resolution, "train_seconds_this_process": fit.seconds,
-                        "source_checkpoint": str(Path(self.source).resolve()), "stamp": self.style.stamp or None})
-        log_preview(self.folder.path, metrics)
-        return metrics
-
-    def reuse(self) -> StageResult:
-        result = super().reuse()
-        metrics = _read_json(self.folder.path / "metrics.json")
-        log_preview(self.folder.path, metrics)
-        return StageResult(result.checkpoint, {**result.summary, **self.summary(metrics)})
-
-    def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
-        judge = metrics.get("judge") or {}
-        return {"preview": str(self.folder.path / "preview.png"), "judge": judge,
-                **{k: v for k, v in metrics.items() if k.startswith("clip_")}}
-
-
-def preview_scene(scene: SceneContext) -> SceneContext:
-    """``scene`` under the preview's settings: ``preview.steps`` / ``preview.resolution`` in place of the
-    stylization's, no video, no saved renders, no meshes."""
-    import copy
-
-    plain = copy.deepcopy(scene.plain)
-    pc = scene.cfg.preview
-    plain["stylize"].update(steps=pc.steps, epochs=None, resolution=pc.resolution, video_frames=0, render_every=0)
-    plain["export"]["enabled"] = False
-    return scene.with_config(plain)
-
-
-def log_preview(folder: Path, metrics: dict[str, Any]) -> None:
-    """One line a user reads: how far the guide moved the views toward the prompt (any prompt; compare prompts by
-    it), the judge's verdict where the prompt names an ImageNet class, and where the picture is."""
-    direction = metrics.get("clip_directional_similarity")
-    guide = "" if direction is None else f"the guide's directional similarity {direction:.3f} (higher: a stronger " \
-                                         "full run, to compare prompts by); "
-    judge = metrics.get("judge") or {}
-    if "stylized" in judge:
-        log.info("preview of %r: %sthe judge's P(%s) %.4f -> %.4f, top-5 on %.0f%% -> %.0f%% of the held-out "
-                 "views; see %s", metrics.get("prompt"), guide, judge["target_class"],
-                 judge["source"]["mean_target_prob"], judge["stylized"]["mean_target_prob"],
-                 100 * judge["source"]["top5_rate"], 100 * judge["stylized"]["top5_rate"], folder / "preview.png")
-    else:
-        log.info("preview of %r: %sjudge: %s; see %s", metrics.get("prompt"), guide, judge.get("skipped", "none"),
-                 folder / "preview.png")
-
-
-def _read_json(path: Path) -> dict[str, Any]:
-    import json
-
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        return {}
-
-
-def _unstyled_warning(style: Style) -> Optional[str]:
-    """The ``WARNING`` of ``metrics.json`` when the guide is not a real CLIP (None when it is)."""
-    if style.stamp.startswith("_VERIFY"):
-        return ("VERIFICATION run: guided by an ImageNet classifier standing in for CLIP, not by CLIP; see the "
-                "judge block")
-    if not style.real:
-        return "UNSTYLED by a real model: random or toy guidance weights were used"
-    return None
-
-
 # ---------------------------------------------------------------------- export
 def write_cameras(scene: SceneContext, folder: Path) -> None:
     """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer and
@@ -479,68 +379,6 @@ def write_cameras(scene: SceneContext, folder: Path) -> None:
     from nerfart_plugin.data.camera_path import viewer_cameras
 
     atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame, scene.ndc))
-
-
-def blended_run(cfg: Any, folder: Optional[Path]) -> Any:
-    """The :class:`~nerfart_plugin.api.Run` that ``stage=render`` / ``stage=export`` work on: ``mix.runs`` at
-    ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``."""
-    from nerfart_plugin.api import mix, open_run
-
-    if cfg.mix.runs:
-        return mix([open_run(Path(r).expanduser(), device=cfg.device) for r in cfg.mix.runs], cfg.mix.weights)
-    run = open_run(folder, device=cfg.device)
-    return run if cfg.strength == 1.0 else run.with_strength(cfg.strength)
-
-
-@dataclass
-class MeshTarget:
-    """Where a blended run's mesh is written from: the export settings (``cfg.export``) and the capture's
-    cameras, as :func:`~nerfart_plugin.export.run_meshes.export_mesh` reads them from a scene."""
-
-    cfg: Any
-    cameras: Any
-
-
-class ExportStage:
-    """``stage=export``: meshes of ``checkpoint`` (at ``strength``, or the ``mix``) into
-    ``<its folder>/mesh/export-<name>-r<resolution><blend tag>.*``."""
-
-    def __init__(self, cfg: Any, checkpoint: Optional[Path], scene: Optional[SceneContext] = None) -> None:
-        self.cfg, self.scene = cfg, scene
-        self.checkpoint = None if checkpoint is None else Path(checkpoint)
-
-    def run(self) -> StageResult:
-        if self.cfg.mix.runs or self.cfg.strength != 1.0:  # a blend (nerfart_plugin.blend): read through the run
-            run = blended_run(self.cfg, self.checkpoint)
-            ckpt, field, target, tag = run.checkpoint, run.renderer.field, MeshTarget(self.cfg, run.cameras), run.tag
-        else:
-            ckpt, target, tag = self.checkpoint, self.scene, ""
-            if not ckpt.exists():
-                raise NerfArtError(f"stage=export: no checkpoint at {ckpt}. Run stage=reconstruct first or pass "
-                                   "source_checkpoint=/path/to/final.ckpt.")
-            renderer = build_renderer(self.scene.cfg, self.scene.setup)
-            renderer.load_state_dict(load_renderer_state(ckpt, self.scene))
-            field = renderer.to(self.scene.device).eval().field
-        stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{tag}"
-        mesh = export_mesh(target, field, stem)
-        return StageResult(ckpt, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
-
-
-class RenderStage:
-    """``stage=render``: videos of a finished run along ``render.path`` into ``<run>/render/<path>-<F>f-<W>x<H>/``
-    (:meth:`nerfart_plugin.api.Run.write_render`); nothing is trained."""
-
-    def __init__(self, cfg: Any, run_dir: Optional[Path]) -> None:
-        self.cfg, self.run_dir = cfg, None if run_dir is None else Path(run_dir)
-
-    def run(self) -> StageResult:
-        rc = self.cfg.render
-        run = blended_run(self.cfg, self.run_dir)
-        resolution = None if rc.resolution == "auto" else int(rc.resolution)
-        path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
-        summary = run.write_render(run.render_folder(path), path, channels=rc.channels, fps=rc.fps, png=rc.png)
-        summary["auto"] = recorded(self.cfg, {"render.resolution": max(path.width, path.height)})
-        return StageResult(run.checkpoint, summary)
 
 
 def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -> tuple[Path, str]:

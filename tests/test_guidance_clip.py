@@ -243,9 +243,9 @@ def test_real_default_without_cache_dir(no_network) -> None:
     """The shipped default config on a machine without the weights (skipped if they are cached)."""
     from open_clip import get_pretrained_cfg
 
-    from nerfart_plugin.guidance.clip import _find_cached
+    from nerfart_plugin.guidance.clip_weights import find_cached
 
-    if _find_cached(get_pretrained_cfg("ViT-B-32", "openai"), None)[0]:
+    if find_cached(get_pretrained_cfg("ViT-B-32", "openai"), None)[0]:
         pytest.skip("ViT-B-32/openai weights are cached on this machine")
     with pytest.raises(WeightsMissingError, match="ViT-B-32"):
         build_guidance({"name": "clip"})

@@ -11,7 +11,8 @@ from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer, step_seed
 from nerfart_plugin.systems.reconstruction import RECONSTRUCTION_LOSSES, ReconstructionSystem
 from nerfart_plugin.systems.scene_setup import SceneSetup
-from nerfart_plugin.systems.stylization import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, StylizationSystem
+from nerfart_plugin.systems.stylization import StylizationSystem
+from nerfart_plugin.systems.stylization_losses import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES
 
 BACKBONE = {"name": "volsdf", "hidden_dim": 16, "n_layers": 1, "feature_dim": 8, "color_hidden_dim": 16,
             "color_layers": 1}

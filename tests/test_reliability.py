@@ -521,7 +521,7 @@ def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, ca
 def test_an_evaluation_on_training_views_is_labelled_as_such():
     import types
 
-    from nerfart_plugin.stages import evaluation_views
+    from nerfart_plugin.evaluation import evaluation_views
 
     assert evaluation_views(types.SimpleNamespace(train_ids=[1, 2, 3], val_ids=[0], num_images=4)) == "held-out views"
     for scene in (types.SimpleNamespace(train_ids=[], val_ids=[0, 1, 2], num_images=3),  # data.holdout_every=1

@@ -30,19 +30,19 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-from pathlib import Path
 from typing import Any, ClassVar, Literal, Optional
 
 import kornia
 import torch
 from torch import Tensor
 
+from nerfart_plugin.auto import dtype_name
 from nerfart_plugin.components import ComponentConfig
 from nerfart_plugin.config_types import Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
-from nerfart_plugin.auto import dtype_name
+from nerfart_plugin.guidance.clip_weights import find_cached, is_torchscript_archive, missing_message
 from nerfart_plugin.guidance.precision import LowPrecisionWeights, Precision, check_precision, compute_dtype
 from nerfart_plugin.registry import register
 
@@ -56,7 +56,6 @@ TINY_TEST_OVERRIDES: dict[str, Any] = {
     "text_cfg": {"context_length": 77, "vocab_size": 49408, "width": 64, "heads": 2, "layers": 1},
 }
 
-_HF_WEIGHT_FILES = ("open_clip_model.safetensors", "open_clip_pytorch_model.bin")
 
 
 class PatchEmbedding(torch.nn.Conv2d):
@@ -100,78 +99,6 @@ def use_matmul_patch_embedding(visual: torch.nn.Module) -> bool:
     emb.weight, emb.bias = conv.weight, conv.bias
     visual.conv1 = emb
     return True
-
-
-def _hf_cache_dir(cache_dir: str | None) -> str:
-    if cache_dir:
-        return str(Path(cache_dir).expanduser())
-    from huggingface_hub import constants
-
-    return str(constants.HF_HUB_CACHE)
-
-
-def _url_cache_dir(cache_dir: str | None) -> str:
-    return str(Path(cache_dir).expanduser()) if cache_dir else os.path.expanduser("~/.cache/clip")
-
-
-def _find_cached(tag_cfg: dict, cache_dir: str | None) -> tuple[str | None, list[str]]:
-    """Look for a tag's checkpoint in local caches. Returns (file or None, places searched)."""
-    searched: list[str] = []
-    hf = tag_cfg.get("hf_hub", "")
-    if hf:
-        from huggingface_hub import try_to_load_from_cache
-
-        # open_clip convention: "org/repo/filename" or "org/repo/" (default file names)
-        repo_id, filename = os.path.split(hf)
-        candidates = [filename] if filename else list(_HF_WEIGHT_FILES)
-        if filename.endswith((".bin", ".pth")):
-            candidates.insert(0, filename[:-4] + ".safetensors")
-        hub_dir = _hf_cache_dir(cache_dir)
-        for fn in candidates:
-            searched.append(f"{hub_dir} (HF repo {repo_id}, file {fn})")
-            try:
-                hit = try_to_load_from_cache(repo_id=repo_id, filename=fn, cache_dir=hub_dir)
-            except Exception as exc:  # malformed cache etc.
-                log.debug("try_to_load_from_cache(%s, %s) failed: %s", repo_id, fn, exc)
-                hit = None
-            if isinstance(hit, str) and os.path.isfile(hit):
-                return hit, searched
-    url = tag_cfg.get("url", "")
-    if url:
-        target = os.path.join(_url_cache_dir(cache_dir), os.path.basename(url))
-        searched.append(target)
-        if os.path.isfile(target):
-            return target, searched
-    return None, searched
-
-
-def _missing_message(model: str, tag: str, searched: list[str], cache_dir: str | None, hint: str) -> str:
-    where = "\n  - ".join(searched) if searched else "(no local cache location known for this tag)"
-    cache_arg = f", cache_dir={cache_dir!r}" if cache_dir else ""
-    return (
-        f"CLIP weights not found: model {model!r} with pretrained={tag!r}.\n"
-        f"Looked for them in:\n  - {where}\n"
-        f"{hint}\n"
-        "How to supply them:\n"
-        f"  (a) on a machine with internet run\n"
-        f"      python -c \"import open_clip; open_clip.create_model_and_transforms('{model}', "
-        f"pretrained='{tag}'{cache_arg})\"\n"
-        f"      and copy the resulting cache folder ({_hf_cache_dir(cache_dir)}) to the same place here "
-        "(or point guidance.clip.cache_dir / HF_HUB_CACHE at it);\n"
-        "  (b) or pass a local checkpoint file: guidance.clip.pretrained=/path/to/file.pt "
-        "(e.g. the OpenAI ViT-B-32.pt or an open_clip .bin/.safetensors);\n"
-        "  (c) tests only: guidance.allow_random_weights=true (random weights, results are meaningless)."
-    )
-
-
-def _is_torchscript_archive(path: str) -> bool:
-    import zipfile
-
-    try:
-        with zipfile.ZipFile(path) as zf:
-            return any(n.endswith("constants.pkl") for n in zf.namelist())
-    except (zipfile.BadZipFile, OSError):
-        return False
 
 
 @register("guidance", "clip")
@@ -242,7 +169,7 @@ class CLIPGuidance(Guidance):
             if tag_cfg:
                 quick_gelu = bool(tag_cfg.get("quick_gelu", False))
             elif checkpoint:
-                quick_gelu = "openai" in os.path.basename(checkpoint).lower() or _is_torchscript_archive(checkpoint)
+                quick_gelu = "openai" in os.path.basename(checkpoint).lower() or is_torchscript_archive(checkpoint)
             else:
                 quick_gelu = False
         try:
@@ -335,7 +262,7 @@ class CLIPGuidance(Guidance):
                 return None, None
             raise WeightsMissingError(msg)
 
-        found, searched = _find_cached(tag_cfg, cache_dir)
+        found, searched = find_cached(tag_cfg, cache_dir)
         if found:
             log.info("CLIP %s/%s: using cached weights %s", model, pretrained, found)
             return found, tag_cfg
@@ -350,7 +277,7 @@ class CLIPGuidance(Guidance):
                     return path, tag_cfg
             except Exception as exc:  # network errors of many kinds
                 log.warning("Download of CLIP %s/%s failed: %s", model, pretrained, exc)
-        msg = _missing_message(model, pretrained, searched, cache_dir, wts.download_hint(allow_download, host))
+        msg = missing_message(model, pretrained, searched, cache_dir, wts.download_hint(allow_download, host))
         if allow_random:
             log.warning("%s\nFalling back to random weights (allow_random_weights=True).", msg)
             return None, None

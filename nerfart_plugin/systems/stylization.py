@@ -9,8 +9,8 @@ Loss, Eq. 8:  L = λd·L_dir^r + λg·L_con^g + λl·L_con^l + λp·L_per + λr�
              official release: 112 px on 270x480), centred on the subject (the source render's opacity);
   * L_per    Eq. 9, VGG16 perceptual distance to the source render;
   * L_reg    Eq. 7, Σ_ij w_i w_j |d_i − d_j| on ray weights (suppresses cloudy geometry).
-Each term is one row of :data:`STYLIZATION_IMAGE_LOSSES` (on the rendered view) or
-:data:`STYLIZATION_RAY_LOSSES` (per ray, with grad), weighted by ``experiment.lambda_<name>``.
+Each term is one row of :data:`~nerfart_plugin.systems.stylization_losses.STYLIZATION_IMAGE_LOSSES` (on the rendered
+view) or :data:`~nerfart_plugin.systems.stylization_losses.STYLIZATION_RAY_LOSSES` (per ray, with grad), weighted by ``experiment.lambda_<name>``.
 Each step renders one view without grad, takes dL/dI, and back-propagates it
 through the field patch by patch at identical samples (Section 4.4,
 :mod:`nerfart_plugin.rendering.two_pass`); ``stylize.backprop=retain`` renders the view
@@ -43,72 +43,17 @@ from torch import Tensor
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.guidance import NegativeSampler, random_patches
 from nerfart_plugin.guidance.patches import subject_box
-from nerfart_plugin.losses import (
-    absolute_clip_loss,
-    contrastive_loss,
-    directional_clip_loss,
-    perceptual_loss,
-    silhouette_loss,
-    weight_regularization,
-)
 from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
                                                render_with_graph)
 from nerfart_plugin.schema import MAX_GRAD_SAMPLES, ExperimentConfig, RenderConfig, StylizeConfig, section
 from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed, to_device
 from nerfart_plugin.systems.callbacks import check_finite_grads
-from nerfart_plugin.systems.loss_terms import LossTerm, compute, regularizer_weights, weighted_sum, weights_of
+from nerfart_plugin.systems.loss_terms import compute, regularizer_weights, weighted_sum, weights_of
 from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.systems.stylization_losses import (STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, ImageInputs,
+                                                       regularizer_term)
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class ImageInputs:
-    """What the image terms of one step share.
-
-    Attributes:
-        img: the rendered view [1,3,H,W] in [0,1] (a leaf: dL/dI is taken w.r.t. it).
-        src: the source view's cache entry (:meth:`StylizationSystem.source_view`).
-        emb: the guidance embedding of the view [1,D] (None when no term needs it).
-        patch_emb: embeddings of the local patches [P,D] (None without the local term).
-        negs: the step's negative text embeddings [M,D] (None without contrastive terms).
-    """
-
-    img: Tensor
-    src: dict[str, Any]
-    emb: Optional[Tensor] = None
-    patch_emb: Optional[Tensor] = None
-    negs: Optional[Tensor] = None
-
-
-def _directional(s: "StylizationSystem", x: ImageInputs) -> Tensor:
-    if s.exp.directional == "absolute":
-        return absolute_clip_loss(x.emb, s.tgt_txt)  # Eq. 3
-    return directional_clip_loss(x.emb, x.src["emb"], s.tgt_txt, s.src_txt)  # Eq. 4
-
-
-#: Eq. 8's image terms, on the rendered view (their dL/dI is back-propagated patch by patch).
-STYLIZATION_IMAGE_LOSSES: tuple[LossTerm, ...] = (
-    LossTerm("dir", _directional, doc="Eq. 4 relative directional CLIP loss (Eq. 3, absolute: experiment.directional)"),
-    LossTerm("global", lambda s, x: contrastive_loss(x.emb, s.tgt_txt, x.negs, s.cfg.tau),
-             doc="Eq. 5: InfoNCE of the whole view vs the target and negative prompts"),
-    LossTerm("local", lambda s, x: contrastive_loss(x.patch_emb, s.tgt_txt, x.negs, s.cfg.tau),
-             doc="Eq. 5-6 on local patches (stylize.local_patches of stylize.local_patch_frac of the area)"),
-    LossTerm("perceptual", lambda s, x: perceptual_loss(s.perceptual.features(x.img), x.src["feats"]),
-             doc="Eq. 9: perceptual distance to the source render"),
-)
-
-#: The per-ray terms, computed with grad on each re-rendered patch; the field's regularizers join them.
-STYLIZATION_RAY_LOSSES: tuple[LossTerm, ...] = (
-    LossTerm("reg", lambda out, rays: weight_regularization(out["weights"], out["t"]),
-             doc="Eq. 7: sum_ij w_i w_j |t_i - t_j| on ray weights (suppresses cloudy geometry)"),
-    LossTerm("silhouette", lambda out, rays: silhouette_loss(out["opacity"], rays["source_opacity"]), geometry=True,
-             doc="not in Eq. 8: BCE of ray opacity vs the source render's"),
-)
-
-
-def _regularizer(name: str):
-    return lambda out, rays: out["regularizers"][name]
 
 
 @dataclass
@@ -308,7 +253,7 @@ class StylizationSystem(RenderSystem):
     def ray_losses(self) -> dict[str, tuple[float, Any]]:
         """``name -> (λ, fn(render_out, rays))`` of the per-ray terms and the field's regularizers."""
         terms = {t.name: (self.lambdas[t.name], t.fn) for t in STYLIZATION_RAY_LOSSES}
-        terms.update({n: (w, _regularizer(n)) for n, w in self.reg_lambdas.items()})
+        terms.update({n: (w, regularizer_term(n)) for n, w in self.reg_lambdas.items()})
         return terms
 
     # ------------------------------------------------------------------ one step
