@@ -37,7 +37,7 @@ PROMPTS = ("brain coral", "jack-o'-lantern", "tabby", "honeycomb", "ski mask", "
 #: judge's gain, its log-ratio and log-rank, the guide's score gain and its directional similarity)
 CHOSEN_ON = PROMPTS
 #: prompts added afterwards to test that predictor on runs it was not picked on
-FRESH_PROMPTS = ("strawberry", "snail", "pizza", "golden retriever", "lemon", "teddy bear")
+FRESH_PROMPTS = ("strawberry", "snail", "teddy bear", "airliner", "pizza")
 #: the full run's outputs the ranking does not need (none changes the trained field or the judge's views)
 FULL_RUN_SKIPS = ("stylize.video_frames=0", "export.enabled=false")
 TARGET_RHO, TARGET_S = 0.7, 60.0
