@@ -283,3 +283,20 @@ def evaluation_views(scene: Any) -> str:
         return "held-out views"
     return ("TRAINING views: no view is held out (data.holdout_every, or too few views), so this PSNR measures "
             "the fit to the photos, not new views")
+
+
+#: silhouette IoU with the source below which a stylization has lost its subject (the stylizations of the
+#: benchmarks keep 0.95-0.97)
+LOST_SUBJECT_IOU = 0.5
+
+
+def lost_subject(iou: Optional[float]) -> Optional[str]:
+    """The warning for a stylized field whose held-out silhouette kept less than :data:`LOST_SUBJECT_IOU` of the
+    source's (its renders show mostly background); None otherwise. Logged too."""
+    if iou is None or iou >= LOST_SUBJECT_IOU:
+        return None
+    text = (f"the stylized field lost its subject: silhouette IoU {iou:.2f} with the source on the held-out views "
+            "(the renders show mostly background). Start from a longer reconstruction, lower stylize.lr / "
+            "stylize.lr_mlp, or raise experiment.lambda_perceptual")
+    log.warning(text)
+    return text

@@ -265,8 +265,11 @@ class StylizeStage(TrainingStage):
                         "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
                         "source_checkpoint": str(Path(self.source).resolve()),
                         **system.negatives_report()})
-        if st.warning:
-            metrics["WARNING"] = st.warning
+        from nerfart_plugin.evaluation import lost_subject
+
+        warnings = [w for w in (st.warning, lost_subject(metrics.get("silhouette_iou"))) if w]
+        if warnings:
+            metrics["WARNING"] = "; ".join(warnings)
         log.info("stylization done -> %s", self.folder.path)
         return metrics
 

@@ -127,3 +127,25 @@ def test_notebook_executes(tmp_path):
     assert (out / "notebook_api_views.png").is_file() and (out / "api_render" / "rgb_UNSTYLED-toy.mp4").is_file()
     # validation render, stylization render, video strip, mesh screenshot, the API's new view
     assert _images(nb) == 5
+
+
+def test_the_notebook_page_shows_code_text_and_pictures(tmp_path):
+    """``docs/make_notebook_page.py`` turns an executed notebook into the docs page: markdown as is, each code
+    cell, its text (the scratch output folder shown as outputs/notebook, long text elided) and its pictures."""
+    import runpy
+
+    make = runpy.run_path(str(REPO / "docs" / "make_notebook_page.py"))
+    png = base64.b64encode(b"\x89PNG\r\n\x1a\nfake").decode()
+    nb = nbformat.v4.new_notebook(cells=[
+        nbformat.v4.new_markdown_cell("## A heading"),
+        nbformat.v4.new_code_cell("print(run_dir)", outputs=[
+            nbformat.v4.new_output("stream", name="stdout", text="/tmp/x/outputs/notebook/stylizations/a\n"),
+            nbformat.v4.new_output("display_data", data={"image/png": png, "text/plain": "<Image>"}),
+            nbformat.v4.new_output("stream", name="stdout", text="\n".join(map(str, range(40))))]),
+    ])
+    page = make["notebook_page"](nb, tmp_path / "notebook", "/tmp/x/outputs/notebook")
+    assert "## A heading" in page and "```python\nprint(run_dir)\n```" in page
+    assert "outputs/notebook/stylizations/a" in page and "/tmp/x" not in page
+    assert "![output of the cell above](../images/notebook/cell01_1.png)" in page
+    assert (tmp_path / "notebook" / "cell01_1.png").read_bytes().startswith(b"\x89PNG") and "<Image>" not in page
+    assert "... (15 more lines)" in page

@@ -527,3 +527,16 @@ def test_an_evaluation_on_training_views_is_labelled_as_such():
     for scene in (types.SimpleNamespace(train_ids=[], val_ids=[0, 1, 2], num_images=3),  # data.holdout_every=1
                   types.SimpleNamespace(train_ids=[0], val_ids=[], num_images=1)):  # a one-view capture
         assert evaluation_views(scene).startswith("TRAINING views")
+
+
+def test_a_stylization_that_lost_its_subject_says_so(caplog):
+    """A stylized field whose held-out silhouette kept less than half the source's (seen: 20 toy-guided steps on a
+    short reconstruction leave only background) gets a WARNING in metrics.json and the log, with what to change."""
+    import logging
+
+    from nerfart_plugin.evaluation import LOST_SUBJECT_IOU, lost_subject
+
+    with caplog.at_level(logging.WARNING, logger="nerfart_plugin"):
+        text = lost_subject(0.0)
+    assert "lost its subject: silhouette IoU 0.00" in text and "stylize.lr" in text and text in caplog.text
+    assert lost_subject(LOST_SUBJECT_IOU) is None and lost_subject(0.97) is None and lost_subject(None) is None
