@@ -144,8 +144,9 @@ def guide_verdicts(previews: list[dict[str, Any]], full: dict[str, dict[str, Any
     pairs = [(p["directional"], full[p["prompt"]]["gain"]) for p in previews]
     fresh = [(p["directional"], full[p["prompt"]]["gain"]) for p in previews if p["prompt"] not in CHOSEN_ON]
     rho, rho_fresh = rank_correlation(pairs), rank_correlation(fresh)
+    untested = "" if len(fresh) >= 3 else ", on the prompts it was picked on: not yet a test"
     lines = [f"- rank correlation of the preview's guide directional similarity with the full run's judge gain "
-             f"over {len(pairs)} prompts >= {TARGET_RHO}: **{'MET' if rho >= TARGET_RHO else 'NOT MET'}** "
+             f"over {len(pairs)} prompts >= {TARGET_RHO}: **{'MET' if rho >= TARGET_RHO else 'NOT MET'}{untested}** "
              f"(Spearman {rho:.2f}; this predictor was picked after the study of the first {len(CHOSEN_ON)} prompts)"]
     if len(fresh) >= 3:
         lines.append(f"- the same over the {len(fresh)} fresh prompts alone (not seen when it was picked): "
