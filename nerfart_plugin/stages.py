@@ -26,10 +26,10 @@ from typing import Any, Iterator, Optional
 import numpy as np
 import torch
 
-from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
-from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_stylization_system, load_renderer_state, style_choices,
-                                      stylize_settings)
 from nerfart_plugin.auto import component_choices, recorded
+from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
+from nerfart_plugin.factories import (SceneContext, Style, build_reconstruction_system, build_stylization_system,
+                                      load_renderer_state, style_choices, stylize_settings)
 from nerfart_plugin.fit import FitResult, fit_stage, publish_final, stage_final
 from nerfart_plugin.runs import RunFolder, config_hash, slug
 from nerfart_plugin.schema import component_result_settings, result_settings
