@@ -8,6 +8,7 @@ write what it printed and drew as the documentation page ``docs/guides/notebook.
 from __future__ import annotations
 
 import base64
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -22,14 +23,23 @@ MAX_TEXT_LINES = 25
 
 
 def _text_of(output: dict[str, Any]) -> str:
+    """What a user reads of one output: printed text and results; not the log lines and progress bars (stderr)."""
     if output.get("output_type") == "stream":
-        return "".join(output.get("text", ""))
+        return "".join(output.get("text", "")) if output.get("name") == "stdout" else ""
     data = output.get("data", {})
     return "".join(data.get("text/plain", "")) if "image/png" not in data else ""
 
 
+#: a progress bar's line (tqdm / Lightning): "... | 10/300 [00:01<00:14, ...]" or "0/? [00:00<?, ?it/s]"
+_PROGRESS = re.compile(r"\|.*\[\d+:\d+(<|\])")
+
+
+#: terminal control sequences (colours, tqdm's cursor moves)
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
 def _clip(text: str) -> str:
-    lines = text.rstrip("\n").splitlines()
+    lines = [ln for ln in _ANSI.sub("", text).strip("\n").splitlines() if not _PROGRESS.search(ln)]
     if len(lines) > MAX_TEXT_LINES:
         lines = lines[:MAX_TEXT_LINES] + [f"... ({len(lines) - MAX_TEXT_LINES} more lines)"]
     return "\n".join(lines)
@@ -37,7 +47,8 @@ def _clip(text: str) -> str:
 
 def notebook_page(nb: Any, images: Path, scratch: str) -> str:
     """The Markdown page of the executed notebook ``nb``: its markdown cells, each code cell and what it printed
-    (``scratch``, the run's output folder, shown as ``outputs/notebook``), its pictures written to ``images``."""
+    (``scratch``, the run's output folder, shown as ``outputs/notebook``; paths in the checkout relative to it; the
+    log lines and progress bars on stderr left out), its pictures written to ``images``."""
     images.mkdir(parents=True, exist_ok=True)
     rel = Path("..") / "images" / images.name
     lines = ["# The Python API, run: the quickstart notebook", "",
@@ -59,7 +70,7 @@ def notebook_page(nb: Any, images: Path, scratch: str) -> str:
                 (images / name).write_bytes(base64.b64decode(data["image/png"]))
                 lines += [f"![output of the cell above]({rel / name})", ""]
                 continue
-            text = _clip(_text_of(output).replace(scratch, "outputs/notebook"))
+            text = _clip(_text_of(output).replace(scratch, "outputs/notebook").replace(str(ROOT) + "/", ""))
             if text.strip():
                 lines += ["```text", text, "```", ""]
     return "\n".join(lines).rstrip() + "\n"

@@ -28,6 +28,7 @@ def documented_commands() -> list[tuple[str, str]]:
             for line in block.replace("\\\n", " ").splitlines():
                 line = line.strip()
                 cmd = line[line.find("python -m nerfart_plugin "):] if "python -m nerfart_plugin " in line else ""
+                cmd = cmd.split("`")[0].strip()  # a command quoted inline in a comment ends at its backtick
                 if cmd:
                     out.append((str(page.relative_to(REPO)), cmd))
     return out

@@ -141,11 +141,28 @@ def test_the_notebook_page_shows_code_text_and_pictures(tmp_path):
         nbformat.v4.new_code_cell("print(run_dir)", outputs=[
             nbformat.v4.new_output("stream", name="stdout", text="/tmp/x/outputs/notebook/stylizations/a\n"),
             nbformat.v4.new_output("display_data", data={"image/png": png, "text/plain": "<Image>"}),
-            nbformat.v4.new_output("stream", name="stdout", text="\n".join(map(str, range(40))))]),
+            nbformat.v4.new_output("stream", name="stdout", text="\n".join(map(str, range(40)))),
+            nbformat.v4.new_output("stream", name="stderr", text="INFO a log line\nEpoch 0: 10%|#"),
+            nbformat.v4.new_output("stream", name="stdout", text="\nEpoch 0:   3%|  | 10/300 [00:00<00:17, 16.6it/s]"),
+            nbformat.v4.new_output("stream", name="stdout", text="\x1b[A\n")]),
     ])
     page = make["notebook_page"](nb, tmp_path / "notebook", "/tmp/x/outputs/notebook")
     assert "## A heading" in page and "```python\nprint(run_dir)\n```" in page
     assert "outputs/notebook/stylizations/a" in page and "/tmp/x" not in page
     assert "![output of the cell above](../images/notebook/cell01_1.png)" in page
     assert (tmp_path / "notebook" / "cell01_1.png").read_bytes().startswith(b"\x89PNG") and "<Image>" not in page
-    assert "... (15 more lines)" in page
+    assert "... (15 more lines)" in page and "INFO a log line" not in page and "it/s" not in page and "[A" not in page
+
+
+def test_the_committed_notebook_page_is_complete():
+    """``docs/guides/notebook.md`` shows every code cell of the committed notebook and its pictures exist."""
+    import re
+
+    page = REPO / "docs" / "guides" / "notebook.md"
+    text = page.read_text()
+    for cell in nbformat.read(NOTEBOOK, as_version=4).cells:
+        if cell.cell_type == "code":
+            assert cell.source in text, "run: python docs/make_notebook_page.py"
+    images = re.findall(r"!\[[^\]]*\]\(([^)]+)\)", text)
+    assert len(images) >= 4 and all((page.parent / i).is_file() for i in images)
+
