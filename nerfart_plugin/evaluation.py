@@ -251,15 +251,17 @@ def off_surface_weight(weights: torch.Tensor, t: torch.Tensor, deltas: torch.Ten
 
 
 @torch.no_grad()
+@torch.no_grad()
 def off_surface_share(renderer: Any, batch: dict[str, Any], delta: float = 0.05, chunk: int = 8192) -> float:
     """Share of a ray batch's total rendering weight lying farther than ``delta`` (world units; the
-    scene is normalized to the unit sphere) from each ray's expected depth (see :func:`off_surface_weight`)."""
+    scene is normalized to the unit sphere) from each ray's expected depth (see :func:`off_surface_weight`).
+    The weights need neither a graph nor the normals (a field whose opacity reads its gradient still takes it)."""
     n = batch["rays_o"].shape[0]
     off = total = 0.0
     for s in range(0, n, chunk):
         sub = {k: (v[s : s + chunk] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
                for k, v in batch.items()}
-        out = renderer(sub)
+        out = renderer(sub, with_normals=False)
         o, t = off_surface_weight(out["weights"], out["t"], out["deltas"], sub["rays_d"].norm(dim=-1), delta)
         off += float(o.sum())
         total += float(t.sum())

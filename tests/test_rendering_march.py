@@ -141,3 +141,25 @@ def test_few_view_samples_only_where_an_occupancy_grid_places_them() -> None:
             full = r.render_chunked(view, chunk=50, with_normals=False)
             ref = r.march(view, num_samples=want, with_normals=False)
         torch.testing.assert_close(full["rgb"], ref["rgb"], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", list(OPAQUE))
+def test_the_off_surface_share_needs_no_graph(name: str) -> None:
+    """The evaluation's off-surface share (``metrics.json``'s ``off_surface_weight``) renders without a graph
+    and without the normals, and reads the same weights as a render with both (NeuS' gradient opacity too)."""
+    from nerfart_plugin.evaluation import off_surface_share, off_surface_weight
+
+    r = _renderer(name, 8)
+    view = front_view(20, 16, 60.0)
+    full = r(view)  # grad enabled, normals: what the evaluation used to pay for
+    off, total = off_surface_weight(full["weights"], full["t"], full["deltas"], view["rays_d"].norm(dim=-1), 0.05)
+    calls: list[tuple[bool, bool]] = []
+
+    def spy(batch: dict, with_normals: bool = True) -> dict:
+        calls.append((torch.is_grad_enabled(), with_normals))
+        return r(batch, with_normals=with_normals)
+
+    share = off_surface_share(spy, view, chunk=97)
+    assert calls and set(calls) == {(False, False)}
+    assert share == pytest.approx(float(off.sum()) / float(total.sum()), rel=1e-5, abs=1e-7)
+    assert 0.0 < float(total.sum())
