@@ -433,3 +433,33 @@ def test_preview_report_ranks_both_predictors_and_the_fresh_prompts_alone():
     old = [{k: v for k, v in p.items() if k != "directional"} for p in previews]  # a raw file from before the field
     assert "guide directional" not in bench.report({"previews": old, "full": full}, info, "cmd").split(
         "**Targets**")[1]
+
+
+def test_preview_retime_replaces_the_times_and_refuses_a_changed_preview(tmp_path: Path, monkeypatch) -> None:
+    """``--retime`` runs each preview of the raw file again from an empty folder: new times replace the old, the
+    full runs stay, and a preview whose scores came out different stops the run (it would time another preview)."""
+    import argparse
+    import json
+
+    bench = _load("preview")
+    old_folder = tmp_path / "previews" / "tabby-old"
+    old_folder.mkdir(parents=True)
+    entry = {"prompt": "tabby", "gain": 0.3, "top5": 0.75, "directional": 0.29, "guide_gain": 0.1, "seconds": 63.0,
+             "fit_s": 46.0, "folder": str(old_folder)}
+    raw_file = tmp_path / "preview.json"
+    raw_file.write_text(json.dumps({"previews": [entry], "full": [{"prompt": "tabby", "gain": 0.17}], "override": []}))
+    seen: list[bool] = []
+
+    def rerun(prompt: str, out_root: Path, extra: list[str], **changes: float) -> dict:
+        seen.append(old_folder.exists())
+        return {**entry, "seconds": 52.0, "fit_s": 44.0, "folder": str(tmp_path / "new"), **changes}
+
+    monkeypatch.setattr(bench, "run_preview", rerun)
+    args = argparse.Namespace(raw=raw_file, quick=False, out_root=tmp_path)
+    raw = bench.retime(args)
+    assert seen == [False]  # timed from scratch, not read back from the cache
+    assert raw["previews"][0]["seconds"] == 52.0 and raw["previews"][0]["fit_s"] == 44.0
+    assert raw["full"] == [{"prompt": "tabby", "gain": 0.17}]
+    monkeypatch.setattr(bench, "run_preview", lambda *a: rerun(*a, directional=0.31))
+    with pytest.raises(SystemExit, match="changed on retiming"):
+        bench.retime(args)
