@@ -12,11 +12,14 @@
    computer), alternated; the fit seconds from each run's ``metrics.json``. Target: <= 15% slower. Once,
    also with a headless Chromium on the same two cores, its camera dragged every 2 s: its software WebGL
    drawing competes with the training and is reported beside the target.
+   The head's 256 px frame is also taken apart (:func:`frame_breakdown`): sampler alone, field alone on the
+   samples the march evaluates, and cheaper settings with their PSNR from the default frame.
 3. ``docs/images/viewer.png``: the main-job run in the viewer, taken by the test suite's headless browser
    (:mod:`nerfart_plugin.viewer.browser`).
 
     python -m benchmarks main_job --prompts "brain coral"       # first: the run to view
     python -m benchmarks viewer --run outputs/benchmarks/main_job/stylizations/<brain coral run>
+    python -m benchmarks viewer --run <the same run> --frames-only     # part 1 again, the rest kept
 """
 
 from __future__ import annotations
@@ -75,6 +78,76 @@ def frame_costs(folder: Path, repeats: int) -> dict[str, Any]:
     field.render(cam, moving, ViewSettings())
     out["moving"] = {"side": moving, "seconds": time.perf_counter() - t0, "rays_per_second": schedule.rays_per_second}
     log.info("%s: %s", folder.name, out)
+    return out
+
+
+def frame_breakdown(folder: Path, side: int = 256, repeats: int = 5) -> dict[str, Any]:
+    """What one ``side`` px frame of the run (from its front camera) is made of, to say what bounds its time:
+    the rays, the samples the march evaluates, the share of them that carry weight (> 1e-6, i.e. that a
+    cheaper colour pass could not skip), the sampler alone, the field alone on exactly those samples, and two
+    cheaper settings with their distance from the default frame (PSNR). Median seconds of ``repeats``."""
+    import torch
+
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.data.rays import camera_batch
+    from nerfart_plugin.losses import psnr
+    from nerfart_plugin.viewer.cameras import capture_camera, render_path
+    from nerfart_plugin.viewer.fields import VIEW_CHUNK
+
+    run = open_run(folder, device="cpu")
+    cams, r = run.cameras, run.renderer
+    rp = render_path(capture_camera(cams, 0), cams, side)
+    batch = camera_batch(rp.K[0], rp.c2w[0], rp.height, rp.width, float(cams.near.min()), float(cams.far.max()),
+                         cams.ndc)
+    n = batch["rays_o"].shape[0]
+    chunks = [{k: (v[s:s + VIEW_CHUNK] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
+               for k, v in batch.items()} for s in range(0, n, VIEW_CHUNK)]
+
+    def median_s(fn: Any) -> float:
+        fn()
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return statistics.median(times)
+
+    with torch.no_grad():
+        frame = lambda: r.render_chunked(batch, chunk=VIEW_CHUNK, with_normals=False)  # noqa: E731
+        reference = frame()["rgb"]
+        marched = [r.march(c, num_samples=r.view_samples, with_normals=False) for c in chunks]
+        evaluated = sum(int(m["samples_evaluated"]) for m in marched)
+        points, dirs, weighty = [], [], 0
+        for c, m in zip(chunks, marched):  # the samples the march evaluated: non-empty, before each ray's stop
+            dense = r(c, t_samples=m["t_samples"], with_normals=False)
+            keep = dense["deltas"] > 0
+            weighty += int((keep & (dense["weights"] > 1e-6)).sum())
+            t = dense["t"][keep]
+            rows = keep.nonzero()[:, 0]
+            d = c["rays_d"][rows]
+            points.append(c["rays_o"][rows] + d * t[:, None])
+            dirs.append(d / d.norm(dim=-1, keepdim=True))
+        pts, dirs_ = torch.cat(points), torch.cat(dirs)
+        step = VIEW_CHUNK * 2
+        field_s = median_s(lambda: [r.field.query(pts[s:s + step], dirs_[s:s + step], with_normal=False)
+                                    for s in range(0, pts.shape[0], step)])
+        sample_s = median_s(lambda: [r.sample(c, False, num_samples=r.view_samples) for c in chunks])
+        out: dict[str, Any] = {"side": side, "rays": n, "samples_per_ray": r.view_samples,
+                               "rays_hitting": int(sum(int(((m["t_samples"][..., 1] > m["t_samples"][..., 0])
+                                                            .any(-1)).sum()) for m in marched)),
+                               "samples_evaluated": evaluated, "samples_marched": int(pts.shape[0]),
+                               "share_weighted": weighty / max(int(pts.shape[0]), 1),
+                               "frame_s": median_s(frame), "sampler_s": sample_s, "field_s": field_s, "variants": []}
+        default = (r.stop_transmittance, r.view_samples)
+        for stop, k in ((1e-2, default[1]), (default[0], 12)):
+            r.stop_transmittance, r.view_samples = stop, k
+            try:
+                img = frame()["rgb"]
+                out["variants"].append({"stop_transmittance": stop, "samples_per_ray": k, "frame_s": median_s(frame),
+                                        "psnr_vs_default": float(psnr(img.clamp(0, 1), reference.clamp(0, 1)))})
+            finally:
+                r.stop_transmittance, r.view_samples = default
+    log.info("breakdown: %s", out)
     return out
 
 
@@ -228,6 +301,23 @@ def screenshot(folder: Path, out: Path) -> str:
 
 
 # --------------------------------------------------------------------------- report
+def breakdown_lines(b: dict[str, Any]) -> list[str]:
+    """The head frame's breakdown (:func:`frame_breakdown`) as a table and what bounds it."""
+    f = common.fmt
+    rows = [["the frame (render job's path, colour only)", f(b["frame_s"], ".3f"), "–"],
+            ["the sampler alone (occupancy-guided sections)", f(b["sampler_s"], ".3f"), "–"],
+            [f"the field alone on the {b['samples_marched']:,} samples the march evaluates", f(b["field_s"], ".3f"),
+             "–"]]
+    rows += [[f"frame with stop_transmittance {v['stop_transmittance']:g}, {v['samples_per_ray']} samples/ray",
+              f(v["frame_s"], ".3f"), f(v["psnr_vs_default"], ".1f")] for v in b["variants"]]
+    return [f"What a {b['side']} px frame of the head is made of ({b['rays']:,} rays, {b['rays_hitting']:,} of them "
+            f"meeting an occupied cell; {b['samples_per_ray']} samples per ray; median seconds):", "",
+            *common.md_table(["part", "seconds", "PSNR vs the default frame (dB)"], rows), "",
+            f"{b['share_weighted']:.1%} of the evaluated samples carry a weight above 1e-6, so skipping the colour "
+            "net on weightless samples would save nothing; the field alone sets a lower bound of "
+            f"{b['field_s']:.2f} s on this frame at these settings, and the sampler adds {b['sampler_s']:.2f} s."]
+
+
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
     body = ["Frames as a browser tab's render job makes them (median seconds; CPU, 2 threads):", ""]
     rows = []
@@ -241,6 +331,9 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
         cells.append(f"{r['moving']['side']} px, {r['moving']['seconds']:.3f} s")
         rows.append(cells)
     body += common.md_table(["run", "capture", *[f"{s} px" for s in SIDES], "capture size", "moving frame"], rows)
+    if raw.get("breakdown"):
+        body += ["", *breakdown_lines(raw["breakdown"])]
+
     def mean_fit(mode: str) -> Optional[float]:
         xs = [r["fit_seconds"] for r in raw["slowdown"] if r["live"] == mode]
         return statistics.mean(xs) if xs else None
@@ -283,6 +376,8 @@ def main(argv: Optional[list[str]] = None) -> int:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--no-screenshot", action="store_true")
     p.add_argument("--no-browser-slowdown", action="store_true", help="skip the same-machine browser rounds")
+    p.add_argument("--frames-only", action="store_true", help="measure the frames (and the head's breakdown) again "
+                   "and keep the raw file's training rounds, screenshot and, without --draft-run, draft frames")
     p.add_argument("--note", nargs="*", default=[])
     common.add_raw_args(p)
     common.add_common_args(p)
@@ -292,12 +387,21 @@ def main(argv: Optional[list[str]] = None) -> int:
     def measure() -> dict[str, Any]:
         if args.run is None:
             raise SystemExit("--run: give the main job's stylization folder (run benchmarks/main_job.py first)")
+        repeats = 1 if args.quick else args.repeats
+        if args.frames_only:
+            raw = json.loads(Path(args.raw or common.raw_path(NAME, args.quick)).read_text())
+            raw["frames"]["head"] = frame_costs(args.run, repeats)
+            if args.draft_run:
+                raw["frames"]["fangzhou_nature draft"] = frame_costs(args.draft_run, repeats)
+            raw["breakdown"] = frame_breakdown(args.run, repeats=repeats)
+            return raw
         steps = 30 if args.quick else args.steps
         draft = args.draft_run or draft_run(args.out_root / "draft")
         raw = {"frames": {"head": frame_costs(args.run, 1 if args.quick else args.repeats),
                           "fangzhou_nature draft": frame_costs(draft, 1 if args.quick else args.repeats)},
                "steps": steps, "slowdown": slowdown(args.out_root / "slowdown", steps, 1 if args.quick else args.rounds,
-                                                    browser=not args.no_browser_slowdown)}
+                                                    browser=not args.no_browser_slowdown),
+               "breakdown": frame_breakdown(args.run, repeats=repeats)}
         if not args.no_screenshot and not args.quick:
             raw["screenshot"] = screenshot(args.run, SCREENSHOT)
         return raw

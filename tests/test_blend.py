@@ -211,3 +211,21 @@ def test_the_gallery_script_draws_a_row_per_run(styles, tmp_path):
     assert not np.array_equal(red, blue)  # each row is its own run
     with pytest.raises(SystemExit):
         make["main"](["--runs", str(tmp_path / "nothing")])
+
+
+@pytest.mark.slow
+def test_the_viewer_benchmark_takes_a_frame_apart(styles):
+    """``benchmarks/viewer.py``'s breakdown of a frame: the march's samples, how many carry weight, the sampler and
+    the field timed apart, and cheaper settings with their distance from the default frame."""
+    from benchmarks import viewer
+
+    b = viewer.frame_breakdown(styles["red"], side=32, repeats=1)
+    assert b["rays"] == 32 * 32 and 0 < b["rays_hitting"] <= b["rays"]
+    assert 0 < b["samples_marched"] <= b["samples_evaluated"] <= b["rays"] * b["samples_per_ray"]
+    assert 0.0 <= b["share_weighted"] <= 1.0
+    assert all(b[k] > 0 for k in ("frame_s", "sampler_s", "field_s"))
+    assert [(v["stop_transmittance"], v["samples_per_ray"]) for v in b["variants"]] == [
+        (1e-2, b["samples_per_ray"]), (1e-4, 12)]
+    assert all(math.isfinite(v["psnr_vs_default"]) for v in b["variants"])
+    text = "\n".join(viewer.breakdown_lines(b))
+    assert "the field alone sets a lower bound" in text and "PSNR vs the default frame" in text
