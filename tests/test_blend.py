@@ -211,6 +211,10 @@ def test_the_gallery_script_draws_a_row_per_run(styles, tmp_path):
     assert not np.array_equal(red, blue)  # each row is its own run
     with pytest.raises(SystemExit):
         make["main"](["--runs", str(tmp_path / "nothing")])
+    labelled = np.asarray(Image.open(make["make_gallery"]([styles["red"]], tmp_path / "l.png", ["no_global"])))
+    assert not np.array_equal(labelled[:, side + 2:2 * side + 2], img[:side, side + 2:2 * side + 2])  # its own label
+    with pytest.raises(SystemExit):  # one label per run
+        make["main"](["--runs", str(styles["red"]), str(styles["blue"]), "--labels", "full"])
 
 
 @pytest.mark.slow
