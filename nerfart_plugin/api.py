@@ -235,7 +235,7 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
         if r.kind != "stylization" or r.weights != (1.0,):
             raise ConfigError(f"mix: {r.folder} is not a stylization as trained; mix stylizations of one source.")
     source = runs[0].source
-    content = _content(source.checkpoint)
+    content = _content(source.checkpoint) if len(runs) > 1 else ""  # one run (the strength dial): its own source
     for r in runs[1:]:
         if _content(r.source.checkpoint) != content:
             raise ConfigError(f"mix: the runs stylize different sources: {source.checkpoint} and "
