@@ -23,7 +23,7 @@ Scenes: the shipped head (``data=h3ds``) and the selfie capture
 ``../shared/data/fangzhou_nature`` (``data=h3ds data.path=...``). Prompts:
 jack-o'-lantern, brain coral, tabby, honeycomb, ski mask. Configurations:
 ``experiment=full`` and the ablations no_local, no_global, no_reg,
-absolute_dir, plus full with ``stylize.freeze_geometry=true``; and, for the
+no_contrastive, absolute_dir, plus full with ``stylize.freeze_geometry=true``; and, for the
 default count of local patches, full with ``stylize.local_patches`` in
 ``--patch-counts``.
 
@@ -59,6 +59,7 @@ CONFIGS: dict[str, list[str]] = {
     "no_local": ["experiment=no_local"],
     "no_global": ["experiment=no_global"],
     "no_reg": ["experiment=no_reg"],
+    "no_contrastive": ["experiment=no_contrastive"],
     "absolute_dir": ["experiment=absolute_dir"],
     "freeze_geometry": ["experiment=full", "stylize.freeze_geometry=true"],
 }
