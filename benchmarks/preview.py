@@ -13,6 +13,7 @@ preview <= 60 s.
     python -m benchmarks preview --out-root /tmp/mj/out
     python -m benchmarks preview --prompts zebra tabby
     python -m benchmarks preview --out-root /tmp/mj/out --retime    # the same previews, timed again
+    python -m benchmarks preview --out-root /tmp/mj/out --retime zebra     # only this one
 """
 
 from __future__ import annotations
@@ -175,7 +176,12 @@ def retime(args: argparse.Namespace) -> dict[str, Any]:
     import shutil
 
     raw = json.loads(Path(args.raw or common.raw_path(NAME, args.quick)).read_text())
+    unknown = set(args.retime or ()) - {p["prompt"] for p in raw["previews"]}
+    if unknown:
+        raise SystemExit(f"--retime: no preview of {sorted(unknown)} in the raw file")
     for old in raw["previews"]:
+        if args.retime and old["prompt"] not in args.retime:
+            continue
         shutil.rmtree(old["folder"], ignore_errors=True)
         new = run_preview(old["prompt"], args.out_root, raw.get("override") or [])
         changed = {k: (old[k], new[k]) for k in ("gain", "top5", "directional", "guide_gain")
@@ -191,8 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--prompts", nargs="+", default=list(PROMPTS))
     p.add_argument("--override", nargs="*", default=[], help="extra overrides, e.g. preview.steps=48")
     p.add_argument("--add", action="store_true", help="measure only the prompts the raw file lacks and append them")
-    p.add_argument("--retime", action="store_true", help="time the raw file's previews again from scratch (their "
-                   "scores must not change) and keep the full runs")
+    p.add_argument("--retime", nargs="*", default=None, metavar="PROMPT", help="time the raw file's previews (or "
+                   "only those of the prompts given) again from scratch (their scores must not change) and keep the "
+                   "full runs")
     p.add_argument("--note", nargs="*", default=[], help="lines added to the report")
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "main_job",
                    help="the output root holding the cached reconstruction (the main-job benchmark's)")
@@ -200,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw = common.raw_results(args, NAME, lambda: retime(args) if args.retime else measure(args))
+    raw = common.raw_results(args, NAME, lambda: retime(args) if args.retime is not None else measure(args))
     raw["notes"] = args.note or raw.get("notes", [])
     common.finish(args, NAME, report(raw, info, common.command("preview.py", argv or sys.argv[1:])))
     return 0

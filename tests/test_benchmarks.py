@@ -455,11 +455,18 @@ def test_preview_retime_replaces_the_times_and_refuses_a_changed_preview(tmp_pat
         return {**entry, "seconds": 52.0, "fit_s": 44.0, "folder": str(tmp_path / "new"), **changes}
 
     monkeypatch.setattr(bench, "run_preview", rerun)
-    args = argparse.Namespace(raw=raw_file, quick=False, out_root=tmp_path)
+    args = argparse.Namespace(raw=raw_file, quick=False, out_root=tmp_path, retime=[])
     raw = bench.retime(args)
     assert seen == [False]  # timed from scratch, not read back from the cache
     assert raw["previews"][0]["seconds"] == 52.0 and raw["previews"][0]["fit_s"] == 44.0
     assert raw["full"] == [{"prompt": "tabby", "gain": 0.17}]
+    two = {"previews": [entry, {**entry, "prompt": "zebra", "folder": str(tmp_path / "z")}], "full": [], "override": []}
+    raw_file.write_text(json.dumps(two))
+    seen.clear()
+    only = bench.retime(argparse.Namespace(**{**vars(args), "retime": ["zebra"]}))  # the prompts given, alone
+    assert len(seen) == 1 and [p["seconds"] for p in only["previews"]] == [63.0, 52.0]
     monkeypatch.setattr(bench, "run_preview", lambda *a: rerun(*a, directional=0.31))
     with pytest.raises(SystemExit, match="changed on retiming"):
         bench.retime(args)
+    with pytest.raises(SystemExit, match=r"no preview of \['snail'\]"):  # only prompts the raw file has
+        bench.retime(argparse.Namespace(**{**vars(args), "retime": ["snail"]}))
