@@ -251,11 +251,11 @@ def off_surface_weight(weights: torch.Tensor, t: torch.Tensor, deltas: torch.Ten
 
 
 @torch.no_grad()
-@torch.no_grad()
 def off_surface_share(renderer: Any, batch: dict[str, Any], delta: float = 0.05, chunk: int = 8192) -> float:
     """Share of a ray batch's total rendering weight lying farther than ``delta`` (world units; the
     scene is normalized to the unit sphere) from each ray's expected depth (see :func:`off_surface_weight`).
-    The weights need neither a graph nor the normals (a field whose opacity reads its gradient still takes it)."""
+    The weights need no normals: an SDF field skips its gradient (a backward pass per sample), unless its
+    opacity reads it."""
     n = batch["rays_o"].shape[0]
     off = total = 0.0
     for s in range(0, n, chunk):

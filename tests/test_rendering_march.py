@@ -144,14 +144,15 @@ def test_few_view_samples_only_where_an_occupancy_grid_places_them() -> None:
 
 
 @pytest.mark.parametrize("name", list(OPAQUE))
-def test_the_off_surface_share_needs_no_graph(name: str) -> None:
+def test_the_off_surface_share_needs_no_normals(name: str) -> None:
     """The evaluation's off-surface share (``metrics.json``'s ``off_surface_weight``) renders without a graph
-    and without the normals, and reads the same weights as a render with both (NeuS' gradient opacity too)."""
+    and without the normals (an SDF field's gradient costs a backward pass per sample), and reads the same weights
+    as a render with both (NeuS' gradient opacity too)."""
     from nerfart_plugin.evaluation import off_surface_share, off_surface_weight
 
     r = _renderer(name, 8)
     view = front_view(20, 16, 60.0)
-    full = r(view)  # grad enabled, normals: what the evaluation used to pay for
+    full = r(view)  # with a graph and the normals
     off, total = off_surface_weight(full["weights"], full["t"], full["deltas"], view["rays_d"].norm(dim=-1), 0.05)
     calls: list[tuple[bool, bool]] = []
 
