@@ -153,7 +153,8 @@ def test_the_off_surface_share_needs_no_normals(name: str) -> None:
     r = _renderer(name, 8)
     view = front_view(20, 16, 60.0)
     full = r(view)  # with a graph and the normals
-    off, total = off_surface_weight(full["weights"], full["t"], full["deltas"], view["rays_d"].norm(dim=-1), 0.05)
+    off, total = off_surface_weight(full["weights"].detach(), full["t"], full["deltas"], view["rays_d"].norm(dim=-1),
+                                    0.05)
     calls: list[tuple[bool, bool]] = []
 
     def spy(batch: dict, with_normals: bool = True) -> dict:
