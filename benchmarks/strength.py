@@ -11,7 +11,8 @@ which stylizes the shipped head toward three prompts from one reconstruction), a
 * view consistency: the warping error between neighbouring frames of a short orbit (as the
   stylization's video measures it), relative to the source's;
 * geometry: mean |displacement| of the blended field's mesh from the source mesh (world units);
-* the cost of the dial: switching the strength of a loaded run and rendering one 256 px view.
+* the cost of the dial: switching the strength of a loaded run and rendering one 256 px view;
+* other parameterizations past s = 1 (:data:`PARTS`): the shape and the colour net at different strengths.
 
 Then a 50/50 mix of the first two runs: both targets' probabilities (they should lie between the
 source and each pure run). Pictures for the docs: a strength strip (``docs/images/strength_strip.png``)
@@ -76,6 +77,40 @@ def judge_of(run: Any, judge: Any, target: int, views: Sequence[int]) -> dict[st
             "images": imgs}
 
 
+#: other parameterizations of the dial past the trained style, as (strength of the shape's tensors, strength of the
+#: colour net's) at s: below s = 1 they equal the shipped dial (both at s)
+PARTS = {"shape capped at 1, colour at s": lambda s: (min(s, 1.0), s),
+         "shape at s, colour capped at 1": lambda s: (s, min(s, 1.0))}
+
+
+def part_blend(run: Any, s_shape: float, s_colour: float) -> Any:
+    """``run`` with its shape's tensors (all but the colour net's: what ``stylize.freeze_geometry`` freezes) at
+    strength ``s_shape`` and its colour net's at ``s_colour``, the occupancy grid re-estimated: a Run."""
+    import copy
+    from dataclasses import replace
+
+    from nerfart_plugin.blend import blend_states, refresh_occupancy
+
+    colour = {id(p) for p in run.renderer.field.color_parameters()}
+    colour_names = {n for n, p in run.renderer.named_parameters() if id(p) in colour}
+    src, sty = run.source.renderer.state_dict(), run.renderer.state_dict()
+    shape_blend, colour_blend = blend_states(src, [sty], [s_shape]), blend_states(src, [sty], [s_colour])
+    renderer = copy.deepcopy(run.renderer)
+    renderer.load_state_dict({k: colour_blend[k] if k in colour_names else v for k, v in shape_blend.items()})
+    refresh_occupancy(renderer)
+    return replace(run, renderer=renderer.eval(), weights=(s_colour,))
+
+
+def part_curves(run: Any, judge: Any, target: int, views: Sequence[int], shipped: Sequence[dict[str, Any]]
+                ) -> dict[str, list[float]]:
+    """The judge's P(target) at every strength under each of :data:`PARTS` (below s = 1: the shipped dial's)."""
+    curves = {}
+    for name, split in PARTS.items():
+        curves[name] = [c["p"] if c["s"] <= 1.0 else judge_of(part_blend(run, *split(c["s"])), judge, target, views)["p"]
+                        for c in shipped]
+    return curves
+
+
 def consistency(run: Any) -> float | None:
     """Mean warping error between neighbouring frames of a short orbit (the video's measure)."""
     from nerfart_plugin.evaluation import view_consistency
@@ -118,7 +153,7 @@ def measure_run(folder: Path, judge: Any) -> dict[str, Any]:
     switch = time.perf_counter() - t0
     return {"folder": str(folder), "prompt": prompt, "views": views, "exact_source_db": exact_source,
             "exact_run_db": exact_run, "curve": rows, "switch_render_256_s": switch,
-            "source_consistency": consistency(run.source)}
+            "source_consistency": consistency(run.source), "parts": part_curves(run, judge, target, views, rows)}
 
 
 def spearman(xs: Sequence[float], ys: Sequence[float]) -> float:
@@ -187,6 +222,22 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
                         f"**{'MET' if r['exact_source_db'] >= 40 else 'NOT MET'}**; s = 1 >= 50 dB "
                         f"**{'MET' if r['exact_run_db'] >= 50 else 'NOT MET'}**; switch + 256 px render <= 1 s "
                         f"**{'MET' if r['switch_render_256_s'] <= 1 else 'NOT MET'}** ({r['switch_render_256_s']:.2f} s)")
+    parts = [r for r in raw["runs"] if r.get("parts")]
+    if parts:
+        body += ["### Other parameterizations past the trained style", "",
+                 "The shape's tensors (grid and geometry net) and the colour net's at different strengths past s = 1 "
+                 "(below 1 both follow s, as the shipped dial): the judge's P(target) at s = 1, 1.25, 1.5 and the "
+                 "Spearman correlation over all s.", ""]
+        rows = []
+        for r in parts:
+            ps = {c["s"]: c["p"] for c in r["curve"]}
+            curves = {"shipped: both at s": [c["p"] for c in r["curve"]], **r["parts"]}
+            for name, curve in curves.items():
+                at = dict(zip(ps, curve))
+                rows.append([r["prompt"], name, *(f"{at[s]:.4f}" for s in (1.0, 1.25, 1.5)),
+                             f"{spearman(list(ps), curve):.2f}"])
+        body += common.md_table(["run", "parameterization", "P at s = 1", "s = 1.25", "s = 1.5", "Spearman"], rows)
+        body += [""]
     mix = raw.get("mix")
     if mix:
         (pa, pb), m = mix["prompts"], mix["p"]

@@ -233,3 +233,25 @@ def test_the_viewer_benchmark_takes_a_frame_apart(styles):
     assert all(math.isfinite(v["psnr_vs_default"]) for v in b["variants"])
     text = "\n".join(viewer.breakdown_lines(b))
     assert "the field alone sets a lower bound" in text and "PSNR vs the default frame" in text
+
+
+@pytest.mark.slow
+def test_the_strength_benchmark_dials_shape_and_colour_apart(styles):
+    """``benchmarks/strength.py``'s other parameterizations: the colour net at one strength, the shape's tensors
+    (what ``stylize.freeze_geometry`` freezes) at another, with the grid estimated for the result."""
+    from benchmarks import strength
+
+    from nerfart_plugin.api import open_run
+
+    run = open_run(styles["red"], device="cpu")
+    colour = {id(p) for p in run.renderer.field.color_parameters()}
+    colour_names = {n for n, p in run.renderer.named_parameters() if id(p) in colour}
+    assert colour_names
+    blended = strength.part_blend(run, 1.5, 1.0)
+    got, trained, src = blended.renderer.state_dict(), run.renderer.state_dict(), run.source.renderer.state_dict()
+    for k in colour_names:  # the colour net as trained
+        torch.testing.assert_close(got[k], trained[k])
+    shape = [k for k in got if k not in colour_names and not k.startswith("occupancy.") and got[k].is_floating_point()
+             and not torch.equal(trained[k], src[k])]
+    assert shape and all(torch.allclose(got[k], src[k] + 1.5 * (trained[k] - src[k]), atol=1e-6) for k in shape)
+    assert blended.weights == (1.0,) and blended.renderer is not run.renderer
