@@ -12,7 +12,8 @@ which stylizes the shipped head toward three prompts from one reconstruction), a
   stylization's video measures it), relative to the source's;
 * geometry: mean |displacement| of the blended field's mesh from the source mesh (world units);
 * the cost of the dial: switching the strength of a loaded run and rendering one 256 px view;
-* other parameterizations past s = 1 (:data:`PARTS`): the shape and the colour net at different strengths.
+* other parameterizations past s = 1 (:data:`PARTS`): the shape and the colour net at different strengths;
+* with ``--vs-training PROMPT``: the dial against the training's own snapshots of the same judge score.
 
 Then a 50/50 mix of the first two runs: both targets' probabilities (they should lie between the
 source and each pure run). Pictures for the docs: a strength strip (``docs/images/strength_strip.png``)
@@ -20,11 +21,13 @@ and source | A | mix | B (``docs/images/mix.png``). The README's gallery comes f
 
     python -m benchmarks strength                                   # the main-job benchmark's runs
     python -m benchmarks strength --runs outputs/stylizations/A outputs/stylizations/B
+    python -m benchmarks strength --vs-training "brain coral" --vs-training-only --out-root ROOT
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import sys
 import time
@@ -156,6 +159,111 @@ def measure_run(folder: Path, judge: Any) -> dict[str, Any]:
             "source_consistency": consistency(run.source), "parts": part_curves(run, judge, target, views, rows)}
 
 
+# --------------------------------------------------------------------------- the dial versus training
+#: the dial's strengths matched against the training's own snapshots
+VS_TRAINING_STRENGTHS = (0.5, 0.75)
+
+
+def snapshot_overrides(prompt: str, out_root: Path) -> list[str]:
+    """The stylization of ``prompt`` at the defaults (``guidance=imagenet``) into ``out_root`` (which holds the
+    reconstruction), its video and meshes skipped (no trained tensor changes)."""
+    return ["guidance=imagenet", f"prompt={json.dumps(prompt)}", f"output_root={out_root}", "stylize.video_frames=0",
+            "export.enabled=false"]
+
+
+def train_with_snapshots(overrides: Sequence[str], every: int) -> tuple[Path, dict[int, dict[str, torch.Tensor]]]:
+    """The stylization ``overrides`` describe (:func:`snapshot_overrides`), trained with the renderer's tensors kept
+    every ``every`` steps. Returns the run folder and the snapshots by step."""
+    import lightning as L
+
+    from nerfart_plugin.pipeline import run as run_pipeline
+    from nerfart_plugin.stages import StylizeStage
+
+    snapshots: dict[int, dict[str, torch.Tensor]] = {}
+
+    class Snapshots(L.Callback):
+        def on_train_batch_end(self, trainer: Any, module: Any, *args: Any) -> None:
+            if trainer.global_step % every == 0:
+                snapshots[trainer.global_step] = {k: v.detach().clone() for k, v in module.renderer.state_dict().items()}
+
+    original = StylizeStage.live_callbacks
+    StylizeStage.live_callbacks = lambda self: [*original(self), Snapshots()]  # type: ignore[method-assign]
+    try:
+        result = run_pipeline(common.compose(list(overrides)))
+    finally:
+        StylizeStage.live_callbacks = original  # type: ignore[method-assign]
+    if not snapshots:
+        raise SystemExit(f"--vs-training: the stylization was already finished ({result['stylization']['dir']}), so "
+                         "no snapshot was taken; remove its folder or give another --out-root")
+    return Path(result["stylization"]["dir"]), snapshots
+
+
+def source_likeness(run: Any, views: Sequence[int]) -> dict[str, float]:
+    """How much of the source a field keeps on the held-out views: PSNR and edge similarity to the source render."""
+    from nerfart_plugin.evaluation import edge_similarity
+
+    mine = torch.stack([render_raw(run, v)["rgb"].permute(2, 0, 1) for v in views])
+    src = torch.stack([render_raw(run.source, v)["rgb"].permute(2, 0, 1) for v in views])
+    return {"psnr_to_source": psnr(mine, src), "edges_to_source": edge_similarity(mine, src)}
+
+
+def dial_vs_training(prompt: str, overrides: Sequence[str], judge: Any, every: int = 10) -> dict[str, Any]:
+    """The dial at :data:`VS_TRAINING_STRENGTHS` against the training snapshot whose judge score is closest (in log
+    probability): the judge, how much of the source each keeps, view consistency and mesh displacement."""
+    import copy
+    import math
+    from dataclasses import replace
+
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.guidance.imagenet import imagenet_classes
+
+    folder, snapshots = train_with_snapshots(overrides, every)
+    run = open_run(folder, device="cpu")
+    target, views = imagenet_classes().find(prompt), list(run.metrics["judge"]["views"])
+    source_mesh = run.source.mesh(128, frame="normalized")
+
+    def at_step(state: dict[str, torch.Tensor]) -> Any:
+        renderer = copy.deepcopy(run.renderer)
+        renderer.load_state_dict(state)
+        return replace(run, renderer=renderer.eval())
+
+    trained = {step: judge_of(at_step(state), judge, target, views)["p"] for step, state in sorted(snapshots.items())}
+
+    def facts(field: Any, p: float) -> dict[str, Any]:
+        return {"p": p, **source_likeness(field, views), "consistency": consistency(field),
+                "displacement": displacement(field, source_mesh)}
+
+    pairs = []
+    for s in VS_TRAINING_STRENGTHS:
+        dial = run.with_strength(s)
+        p = judge_of(dial, judge, target, views)["p"]
+        step = min(trained, key=lambda k: abs(math.log(trained[k]) - math.log(p)))
+        pairs.append({"s": s, "step": step, "dial": facts(dial, p), "training": facts(at_step(snapshots[step]),
+                                                                                    trained[step])})
+        log.info("dial s=%.2f (P %.4f) vs training step %d (P %.4f)", s, p, step, trained[step])
+    return {"prompt": prompt, "folder": str(folder), "steps": max(trained), "trained_p": trained,
+            "source_consistency": consistency(run.source), "pairs": pairs}
+
+
+def vs_training_lines(v: dict[str, Any]) -> list[str]:
+    f = common.fmt
+    rows = []
+    for pair in v["pairs"]:
+        for name, d in (("dial", pair["dial"]), ("training", pair["training"])):
+            label = f"dial s = {pair['s']:g}" if name == "dial" else f"training, step {pair['step']} of {v['steps']}"
+            ratio = d["consistency"] / v["source_consistency"] if d["consistency"] and v["source_consistency"] else None
+            rows.append([label, f"{d['p']:.4f}", f(d["psnr_to_source"], ".2f"), f(d["edges_to_source"], ".3f"),
+                         f(ratio, ".2f"), f(d["displacement"], ".4f")])
+    curve = ", ".join(f"{k}: {p:.4f}" for k, p in sorted(v["trained_p"].items(), key=lambda kv: int(kv[0])))
+    return [f"### The dial versus training ({v['prompt']})", "",
+            "The same stylization trained again at the defaults with its tensors kept every few steps; each dial "
+            "strength is set beside the training step whose judge score is closest (log probability). Keeping the "
+            "source: PSNR and edge similarity of the held-out views to the source render (higher keeps more).", "",
+            *common.md_table(["field", "judge P(target)", "PSNR to source (dB)", "edge similarity to source",
+                              "view-consistency ratio", "mean abs displacement"], rows), "",
+            f"Judge P(target) along training (step: P): {curve}.", ""]
+
+
 def spearman(xs: Sequence[float], ys: Sequence[float]) -> float:
     from scipy.stats import spearmanr
 
@@ -250,6 +358,8 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
         verdicts.append(f"- the mix's two target probabilities lie between the source and each pure run: "
                         f"**{'MET' if between else 'NOT MET'}**")
         body += ["", "![source | A | mix | B](docs/images/mix.png)", ""]
+    if raw.get("vs_training"):
+        body += vs_training_lines(raw["vs_training"])
     body += ["![strength strip](docs/images/strength_strip.png)", "", "**Targets**", "", *verdicts]
     return common.section(NAME, "The strength dial and style mixing (head)", cmd, info, body, False)
 
@@ -276,11 +386,27 @@ def measure(folders: Sequence[Path]) -> dict[str, Any]:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--runs", nargs="+", type=Path, default=None, help="stylization folders of one source")
+    p.add_argument("--vs-training", metavar="PROMPT", default=None, help="also train PROMPT's stylization again into "
+                   "--out-root (which holds the reconstruction) with snapshots, and set the dial beside training")
+    p.add_argument("--vs-training-only", action="store_true", help="only that study, added to the raw file's runs")
+    p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "main_job")
     common.add_raw_args(p)
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw = common.raw_results(args, NAME, lambda: measure(args.runs or default_runs()))
+    def measure_all() -> dict[str, Any]:
+        if args.vs_training_only:
+            raw = json.loads(Path(args.raw or common.raw_path(NAME, args.quick)).read_text())
+        else:
+            raw = measure(args.runs or default_runs())
+        if args.vs_training:
+            from nerfart_plugin.evaluation import ImageNetJudge
+
+            raw["vs_training"] = dial_vs_training(args.vs_training, snapshot_overrides(args.vs_training, args.out_root),
+                                                  ImageNetJudge())
+        return raw
+
+    raw = common.raw_results(args, NAME, measure_all)
     common.finish(args, NAME, report(raw, info, common.command("strength.py", argv or sys.argv[1:])))
     return 0
 

@@ -255,3 +255,28 @@ def test_the_strength_benchmark_dials_shape_and_colour_apart(styles):
              and not torch.equal(trained[k], src[k])]
     assert shape and all(torch.allclose(got[k], src[k] + 1.5 * (trained[k] - src[k]), atol=1e-6) for k in shape)
     assert blended.weights == (1.0,) and blended.renderer is not run.renderer
+
+
+@pytest.mark.slow
+def test_the_strength_benchmark_sets_the_dial_beside_training(tmp_path):
+    """``benchmarks/strength.py --vs-training``: the stylization trained again with snapshots, each dial strength set
+    beside the snapshot of the closest judge score, with how much of the source each keeps; a finished run in the
+    root (no snapshots taken) is refused."""
+    from benchmarks import strength
+
+    from nerfart_plugin.evaluation import ImageNetJudge
+
+    from pipeline_helpers import TINY
+
+    overrides = [f"output_root={tmp_path}", f"data.path={DEFAULT_SCENE}", *TINY, *STYLE, "prompt=zebra"]
+    v = strength.dial_vs_training("zebra", overrides, ImageNetJudge(), every=2)
+    assert sorted(v["trained_p"]) == [2, 4] and v["steps"] == 4
+    assert [p["s"] for p in v["pairs"]] == list(strength.VS_TRAINING_STRENGTHS)
+    for pair in v["pairs"]:
+        assert pair["step"] in v["trained_p"] and pair["training"]["p"] == v["trained_p"][pair["step"]]
+        for side in ("dial", "training"):
+            assert set(pair[side]) == {"p", "psnr_to_source", "edges_to_source", "consistency", "displacement"}
+    text = "\n".join(strength.vs_training_lines(v))
+    assert "### The dial versus training (zebra)" in text and "training, step" in text and "dial s = 0.5" in text
+    with pytest.raises(SystemExit, match="already finished"):
+        strength.train_with_snapshots(overrides, 2)
