@@ -304,7 +304,7 @@ def strength_strip(folder: Path) -> None:
 
 
 # --------------------------------------------------------------------------- report
-def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
+def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, notes: Sequence[str] = ()) -> str:
     body = ["Each stylization run at strengths s (θ = θ_src + s·(θ_run − θ_src), the occupancy grid re-estimated "
             "for the blended field): the independent judge (EfficientNet-Lite2) on the run's held-out views at "
             "its resolution, the warping error along an 8-frame 128 px orbit relative to the source's, and the "
@@ -361,6 +361,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     if raw.get("vs_training"):
         body += vs_training_lines(raw["vs_training"])
     body += ["![strength strip](docs/images/strength_strip.png)", "", "**Targets**", "", *verdicts]
+    body += ["", *notes] if notes else []
     return common.section(NAME, "The strength dial and style mixing (head)", cmd, info, body, False)
 
 
@@ -390,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
                    "--out-root (which holds the reconstruction) with snapshots, and set the dial beside training")
     p.add_argument("--vs-training-only", action="store_true", help="only that study, added to the raw file's runs")
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "main_job")
+    p.add_argument("--note", nargs="*", default=[], help="lines added to the report (e.g. the commands that measured "
+                   "what --report-only reports)")
     common.add_raw_args(p)
     common.add_common_args(p)
     args = p.parse_args(argv)
@@ -407,7 +410,7 @@ def main(argv: list[str] | None = None) -> int:
         return raw
 
     raw = common.raw_results(args, NAME, measure_all)
-    common.finish(args, NAME, report(raw, info, common.command("strength.py", argv or sys.argv[1:])))
+    common.finish(args, NAME, report(raw, info, common.command("strength.py", argv or sys.argv[1:]), args.note))
     return 0
 
 
