@@ -92,6 +92,7 @@ def frame_breakdown(folder: Path, side: int = 256, repeats: int = 5) -> dict[str
     from nerfart_plugin.data.rays import camera_batch
     from nerfart_plugin.losses import psnr
     from nerfart_plugin.viewer.cameras import capture_camera, render_path
+    from benchmarks.stylization import timed
     from nerfart_plugin.viewer.fields import VIEW_CHUNK
 
     run = open_run(folder, device="cpu")
@@ -102,15 +103,6 @@ def frame_breakdown(folder: Path, side: int = 256, repeats: int = 5) -> dict[str
     n = batch["rays_o"].shape[0]
     chunks = [{k: (v[s:s + VIEW_CHUNK] if torch.is_tensor(v) and v.dim() > 0 and v.shape[0] == n else v)
                for k, v in batch.items()} for s in range(0, n, VIEW_CHUNK)]
-
-    def median_s(fn: Any) -> float:
-        fn()
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-        return statistics.median(times)
 
     with torch.no_grad():
         frame = lambda: r.render_chunked(batch, chunk=VIEW_CHUNK, with_normals=False)  # noqa: E731
@@ -129,21 +121,21 @@ def frame_breakdown(folder: Path, side: int = 256, repeats: int = 5) -> dict[str
             dirs.append(d / d.norm(dim=-1, keepdim=True))
         pts, dirs_ = torch.cat(points), torch.cat(dirs)
         step = VIEW_CHUNK * 2
-        field_s = median_s(lambda: [r.field.query(pts[s:s + step], dirs_[s:s + step], with_normal=False)
-                                    for s in range(0, pts.shape[0], step)])
-        sample_s = median_s(lambda: [r.sample(c, False, num_samples=r.view_samples) for c in chunks])
+        field_s = timed(lambda: [r.field.query(pts[s:s + step], dirs_[s:s + step], with_normal=False)
+                                 for s in range(0, pts.shape[0], step)], repeats)
+        sample_s = timed(lambda: [r.sample(c, False, num_samples=r.view_samples) for c in chunks], repeats)
         out: dict[str, Any] = {"side": side, "rays": n, "samples_per_ray": r.view_samples,
                                "rays_hitting": int(sum(int(((m["t_samples"][..., 1] > m["t_samples"][..., 0])
                                                             .any(-1)).sum()) for m in marched)),
                                "samples_evaluated": evaluated, "samples_marched": int(pts.shape[0]),
                                "share_weighted": weighty / max(int(pts.shape[0]), 1),
-                               "frame_s": median_s(frame), "sampler_s": sample_s, "field_s": field_s, "variants": []}
+                               "frame_s": timed(frame, repeats), "sampler_s": sample_s, "field_s": field_s, "variants": []}
         default = (r.stop_transmittance, r.view_samples)
         for stop, k in ((1e-2, default[1]), (default[0], 12)):
             r.stop_transmittance, r.view_samples = stop, k
             try:
                 img = frame()["rgb"]
-                out["variants"].append({"stop_transmittance": stop, "samples_per_ray": k, "frame_s": median_s(frame),
+                out["variants"].append({"stop_transmittance": stop, "samples_per_ray": k, "frame_s": timed(frame, repeats),
                                         "psnr_vs_default": float(psnr(img.clamp(0, 1), reference.clamp(0, 1)))})
             finally:
                 r.stop_transmittance, r.view_samples = default
