@@ -86,22 +86,32 @@ PARTS = {"shape capped at 1, colour at s": lambda s: (min(s, 1.0), s),
          "shape at s, colour capped at 1": lambda s: (s, min(s, 1.0))}
 
 
-def part_blend(run: Any, s_shape: float, s_colour: float) -> Any:
-    """``run`` with its shape's tensors (all but the colour net's: what ``stylize.freeze_geometry`` freezes) at
-    strength ``s_shape`` and its colour net's at ``s_colour``, the occupancy grid re-estimated: a Run."""
+def with_state(run: Any, state: dict[str, torch.Tensor], refresh_grid: bool = False, **changes: Any) -> Any:
+    """A Run like ``run`` rendering a copy of its renderer holding ``state`` (its occupancy grid estimated afresh
+    when ``refresh_grid``); ``changes``: other Run fields (e.g. ``weights``)."""
     import copy
     from dataclasses import replace
 
-    from nerfart_plugin.blend import blend_states, refresh_occupancy
+    from nerfart_plugin.blend import refresh_occupancy
+
+    renderer = copy.deepcopy(run.renderer)
+    renderer.load_state_dict(state)
+    if refresh_grid:
+        refresh_occupancy(renderer)
+    return replace(run, renderer=renderer.eval(), **changes)
+
+
+def part_blend(run: Any, s_shape: float, s_colour: float) -> Any:
+    """``run`` with its shape's tensors (all but the colour net's: what ``stylize.freeze_geometry`` freezes) at
+    strength ``s_shape`` and its colour net's at ``s_colour``, the occupancy grid re-estimated: a Run."""
+    from nerfart_plugin.blend import blend_states
 
     colour = {id(p) for p in run.renderer.field.color_parameters()}
     colour_names = {n for n, p in run.renderer.named_parameters() if id(p) in colour}
     src, sty = run.source.renderer.state_dict(), run.renderer.state_dict()
     shape_blend, colour_blend = blend_states(src, [sty], [s_shape]), blend_states(src, [sty], [s_colour])
-    renderer = copy.deepcopy(run.renderer)
-    renderer.load_state_dict({k: colour_blend[k] if k in colour_names else v for k, v in shape_blend.items()})
-    refresh_occupancy(renderer)
-    return replace(run, renderer=renderer.eval(), weights=(s_colour,))
+    state = {k: colour_blend[k] if k in colour_names else v for k, v in shape_blend.items()}
+    return with_state(run, state, refresh_grid=True, weights=(s_colour,))
 
 
 def part_curves(run: Any, judge: Any, target: int, views: Sequence[int], shipped: Sequence[dict[str, Any]]
@@ -210,9 +220,7 @@ def source_likeness(run: Any, views: Sequence[int]) -> dict[str, float]:
 def dial_vs_training(prompt: str, overrides: Sequence[str], judge: Any, every: int = 10) -> dict[str, Any]:
     """The dial at :data:`VS_TRAINING_STRENGTHS` against the training snapshot whose judge score is closest (in log
     probability): the judge, how much of the source each keeps, view consistency and mesh displacement."""
-    import copy
     import math
-    from dataclasses import replace
 
     from nerfart_plugin.api import open_run
     from nerfart_plugin.guidance.imagenet import imagenet_classes
@@ -222,12 +230,8 @@ def dial_vs_training(prompt: str, overrides: Sequence[str], judge: Any, every: i
     target, views = imagenet_classes().find(prompt), list(run.metrics["judge"]["views"])
     source_mesh = run.source.mesh(128, frame="normalized")
 
-    def at_step(state: dict[str, torch.Tensor]) -> Any:
-        renderer = copy.deepcopy(run.renderer)
-        renderer.load_state_dict(state)
-        return replace(run, renderer=renderer.eval())
-
-    trained = {step: judge_of(at_step(state), judge, target, views)["p"] for step, state in sorted(snapshots.items())}
+    trained = {step: judge_of(with_state(run, state), judge, target, views)["p"]
+               for step, state in sorted(snapshots.items())}
 
     def facts(field: Any, p: float) -> dict[str, Any]:
         return {"p": p, **source_likeness(field, views), "consistency": consistency(field),
@@ -238,7 +242,7 @@ def dial_vs_training(prompt: str, overrides: Sequence[str], judge: Any, every: i
         dial = run.with_strength(s)
         p = judge_of(dial, judge, target, views)["p"]
         step = min(trained, key=lambda k: abs(math.log(trained[k]) - math.log(p)))
-        pairs.append({"s": s, "step": step, "dial": facts(dial, p), "training": facts(at_step(snapshots[step]),
+        pairs.append({"s": s, "step": step, "dial": facts(dial, p), "training": facts(with_state(run, snapshots[step]),
                                                                                     trained[step])})
         log.info("dial s=%.2f (P %.4f) vs training step %d (P %.4f)", s, p, step, trained[step])
     return {"prompt": prompt, "folder": str(folder), "steps": max(trained), "trained_p": trained,
