@@ -256,7 +256,7 @@ def compose(overrides: Sequence[str]) -> dict[str, Any]:
     from hydra import initialize_config_dir
     from omegaconf import OmegaConf
 
-    from nerfart_plugin.config_paths import config_dir
+    from nerfart_plugin.config.compose import config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = _compose("config", overrides=list(overrides))

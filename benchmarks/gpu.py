@@ -1,6 +1,6 @@
 """The GPU figures: the paper-resolution job and 512x512 stylization memory on ``device=cuda``.
 
-Two measurements, each the whole pipeline as a user runs it (``nerfart_plugin.pipeline.run``):
+Two measurements, each the whole pipeline as a user runs it (``nerfart_plugin.run.pipeline.run``):
 
 * **paper-resolution job** on the selfie capture ``fangzhou_nature`` (``data=h3ds``, frames at
   270x480, ``preset=paper_res``: reconstruction, then 4 epochs of stylization at 270x480) with

@@ -206,7 +206,7 @@ sys.path.insert(0, {str(ROOT)!r}); sys.path.insert(0, {str(ROOT / 'tests')!r})
 from pathlib import Path
 from pipeline_helpers import tiny_cfg
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-from nerfart_plugin.pipeline import run
+from nerfart_plugin.run.pipeline import run
 run(tiny_cfg(Path({str(out / 'tiny')!r}), DEFAULT_SCENE, "guidance=toy", "prompt=red", "reconstruct.steps=5",
              "stylize.steps=2"))
 from nerfart_plugin.guidance import build_guidance

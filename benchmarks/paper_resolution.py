@@ -176,7 +176,7 @@ def source_field_and_image_gradient(ctx: Any, view: dict[str, Any], samples: int
     """The source field's renderer at ``samples`` per ray, and a fixed random image gradient [R,3] for ``view``."""
     import torch
 
-    from nerfart_plugin.factories import build_renderer
+    from nerfart_plugin.run.factories import build_renderer
 
     r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
     r.load_state_dict(ctx.source_state)
@@ -190,7 +190,7 @@ def mixed_fidelity(ctx: Any, view: dict[str, Any], samples: int, precision: str)
     cosine against float32, same samples."""
     import torch
 
-    from nerfart_plugin.losses import psnr
+    from nerfart_plugin.objectives.losses import psnr
     from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 
     dtype = torch.bfloat16 if precision.startswith("bf16") else torch.float16
@@ -263,7 +263,7 @@ def _timed_run(overrides: list[str], device: str) -> tuple[dict[str, Any], float
     """(results, wall seconds, peak accelerator GiB or 0) of one pipeline run."""
     import torch
 
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     cuda = device.startswith("cuda")
     if cuda:

@@ -67,7 +67,7 @@ def image_loss_fn(size: int, device):
     import torch
 
     from nerfart_plugin.guidance import EdgePerceptual, ToyGuidance
-    from nerfart_plugin.losses import absolute_clip_loss, perceptual_loss
+    from nerfart_plugin.objectives.losses import absolute_clip_loss, perceptual_loss
 
     g, perc = ToyGuidance().to(device), EdgePerceptual().to(device)
     txt = g.encode_text(["a painting in vivid blue and gold"])
@@ -88,7 +88,7 @@ def _chunks(n: int, size: int):
 def run_method(r, view: dict, mode: str, chunk: int, patch_rays: int, loss_fn, seed: int) -> None:
     import torch
 
-    from nerfart_plugin.losses import weight_regularization
+    from nerfart_plugin.objectives.losses import weight_regularization
     from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples, slice_rays
 
     g = torch.Generator().manual_seed(seed)
@@ -111,9 +111,9 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     """Child: build the field, warm up, then time one ``mode`` step at ``size`` and report peak memory."""
     import torch
 
-    from nerfart_plugin.factories import build_renderer, typed
-    from nerfart_plugin.systems.base import to_device
-    from nerfart_plugin.systems.scene_setup import SceneSetup
+    from nerfart_plugin.run.factories import build_renderer, typed
+    from nerfart_plugin.utils.device import to_device
+    from nerfart_plugin.data.setup import SceneSetup
     from nerfart_plugin.utils.device import pick_device
 
     c, _ = typed(common.compose(["stage=reconstruct", *payload["overrides"]]))

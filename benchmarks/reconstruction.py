@@ -117,9 +117,9 @@ def _budget_callback(budget: float, checkpoints: list[float], evaluate, stretch_
 
 # --------------------------------------------------------------------------- one run
 def load_scene(overrides: list[str]):
-    """The loaded scene (:func:`nerfart_plugin.factories.build_scene`) with its training rays precomputed
+    """The loaded scene (:func:`nerfart_plugin.run.factories.build_scene`) with its training rays precomputed
     (shared by all backbones)."""
-    from nerfart_plugin.factories import build_scene
+    from nerfart_plugin.run.factories import build_scene
 
     scene = build_scene(common.compose(["stage=reconstruct", *overrides]))
     scene.dm.setup("fit")
@@ -150,9 +150,9 @@ def train_one(scene, overrides: list[str], budget: float, checkpoints: list[floa
     import lightning as L
     import torch
 
-    from nerfart_plugin.evaluation import mean_metrics, view_metrics
-    from nerfart_plugin.factories import build_reconstruction_system
-    from nerfart_plugin.fit import train_steps
+    from nerfart_plugin.objectives.evaluation import mean_metrics, view_metrics
+    from nerfart_plugin.run.factories import build_reconstruction_system
+    from nerfart_plugin.run.fit import train_steps
 
     ctx = scene.with_config(common.compose(["stage=reconstruct", *overrides]))  # this run's render settings
     L.seed_everything(ctx.cfg.seed, verbose=False)

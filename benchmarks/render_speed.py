@@ -52,8 +52,8 @@ QUICK = ["data.resolution=48", "reconstruct.steps=200", "reconstruct.val_every=1
 
 def trained_scene(overrides: list[str]) -> tuple[Any, dict]:
     """The scene context and the trained renderer tensors of its (cached) reconstruction."""
-    from nerfart_plugin.factories import build_scene, load_renderer_state
-    from nerfart_plugin.stages import ReconstructStage
+    from nerfart_plugin.run.factories import build_scene, load_renderer_state
+    from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 
     scene = build_scene(common.compose(["stage=reconstruct", *overrides]))
     recon = ReconstructStage(scene)
@@ -67,8 +67,8 @@ def measure(scene: Any, state: dict, samples: list[int], views: int, reps: int) 
     """Seconds per view, PSNR vs the 256-sample reference and evaluations per ray, per (mode, K)."""
     import torch
 
-    from nerfart_plugin.factories import build_renderer
-    from nerfart_plugin.losses import psnr
+    from nerfart_plugin.run.factories import build_renderer
+    from nerfart_plugin.objectives.losses import psnr
 
     r = build_renderer(scene.cfg, scene.setup)
     r.load_state_dict(state)

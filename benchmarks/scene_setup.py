@@ -4,7 +4,7 @@ For each scene — fern (LLFF, forward-facing, NDC), the shipped head (object wi
 mattes) and a selfie-video scene (``fangzhou_nature``: frames + COLMAP model +
 mattes, at 270x480) — and each variant of the render settings:
 
-* ``auto``: what :func:`~nerfart_plugin.systems.scene_setup.decide_setup` picks
+* ``auto``: what :func:`~nerfart_plugin.data.setup.decide_setup` picks
   (occupancy grid ``auto``: on except for forward-facing NDC captures; background
   model ``auto``: on only for unbounded captures without masks — off for all three);
 * ``occupancy flipped``: the opposite of auto's occupancy choice
@@ -72,9 +72,9 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     import lightning as L
     import torch
 
-    from nerfart_plugin.evaluation import view_metrics
-    from nerfart_plugin.factories import build_reconstruction_system, build_scene
-    from nerfart_plugin.fit import train_steps
+    from nerfart_plugin.objectives.evaluation import view_metrics
+    from nerfart_plugin.run.factories import build_reconstruction_system, build_scene
+    from nerfart_plugin.run.fit import train_steps
 
     common.quiet_logs()
     scene = build_scene(common.compose(["stage=reconstruct", *payload["overrides"]]))

@@ -66,7 +66,7 @@ def measure(sides: list[int], steps: int, warmup: int, extra: list[str]) -> list
     import lightning as L
     import torch
 
-    from nerfart_plugin.factories import build_reconstruction_system, build_scene
+    from nerfart_plugin.run.factories import build_reconstruction_system, build_scene
     from nerfart_plugin.systems.base import adam, param_groups
 
     shared = common.shared_data()

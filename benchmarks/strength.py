@@ -92,7 +92,7 @@ def with_state(run: Any, state: dict[str, torch.Tensor], refresh_grid: bool = Fa
     import copy
     from dataclasses import replace
 
-    from nerfart_plugin.blend import refresh_occupancy
+    from nerfart_plugin.results.blend import refresh_occupancy
 
     renderer = copy.deepcopy(run.renderer)
     renderer.load_state_dict(state)
@@ -104,7 +104,7 @@ def with_state(run: Any, state: dict[str, torch.Tensor], refresh_grid: bool = Fa
 def part_blend(run: Any, s_shape: float, s_colour: float) -> Any:
     """``run`` with its shape's tensors (all but the colour net's: what ``stylize.freeze_geometry`` freezes) at
     strength ``s_shape`` and its colour net's at ``s_colour``, the occupancy grid re-estimated: a Run."""
-    from nerfart_plugin.blend import blend_states
+    from nerfart_plugin.results.blend import blend_states
 
     colour = {id(p) for p in run.renderer.field.color_parameters()}
     colour_names = {n for n, p in run.renderer.named_parameters() if id(p) in colour}
@@ -126,7 +126,7 @@ def part_curves(run: Any, judge: Any, target: int, views: Sequence[int], shipped
 
 def consistency(run: Any) -> float | None:
     """Mean warping error between neighbouring frames of a short orbit (the video's measure)."""
-    from nerfart_plugin.evaluation import view_consistency
+    from nerfart_plugin.objectives.evaluation import view_consistency
 
     rp = run.camera_path("orbit", ORBIT_FRAMES, 128)
     frames = [render_camera(run, rp, i) for i in range(len(rp))]
@@ -186,8 +186,8 @@ def train_with_snapshots(overrides: Sequence[str], every: int) -> tuple[Path, di
     every ``every`` steps. Returns the run folder and the snapshots by step."""
     import lightning as L
 
-    from nerfart_plugin.pipeline import run as run_pipeline
-    from nerfart_plugin.stages import StylizeStage
+    from nerfart_plugin.run.pipeline import run as run_pipeline
+    from nerfart_plugin.run.stages.stylize import StylizeStage
 
     snapshots: dict[int, dict[str, torch.Tensor]] = {}
 
@@ -210,7 +210,7 @@ def train_with_snapshots(overrides: Sequence[str], every: int) -> tuple[Path, di
 
 def source_likeness(run: Any, views: Sequence[int]) -> dict[str, float]:
     """How much of the source a field keeps on the held-out views: PSNR and edge similarity to the source render."""
-    from nerfart_plugin.evaluation import edge_similarity
+    from nerfart_plugin.objectives.evaluation import edge_similarity
 
     mine = torch.stack([render_raw(run, v)["rgb"].permute(2, 0, 1) for v in views])
     src = torch.stack([render_raw(run.source, v)["rgb"].permute(2, 0, 1) for v in views])
@@ -276,7 +276,7 @@ def spearman(xs: Sequence[float], ys: Sequence[float]) -> float:
 
 def measure_mix(a_dir: Path, b_dir: Path, judge: Any) -> dict[str, Any]:
     from nerfart_plugin.api import mix, open_run
-    from nerfart_plugin.export.video import save_image, side_by_side
+    from nerfart_plugin.utils.images import save_image, side_by_side
     from nerfart_plugin.guidance.imagenet import imagenet_classes
 
     a, b = open_run(a_dir, device="cpu"), open_run(b_dir, device="cpu")
@@ -298,7 +298,7 @@ def measure_mix(a_dir: Path, b_dir: Path, judge: Any) -> dict[str, Any]:
 def strength_strip(folder: Path) -> None:
     """``docs/images/strength_strip.png``: one held-out view of the run at the strengths of :data:`STRIP`."""
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.export.video import image_grid, label_image, save_image, to_uint8
+    from nerfart_plugin.utils.images import image_grid, label_image, save_image, to_uint8
 
     run = open_run(folder, device="cpu")
     view = run.metrics["judge"]["views"][1]
@@ -375,7 +375,7 @@ def default_runs() -> list[Path]:
 
 def measure(folders: Sequence[Path]) -> dict[str, Any]:
     """The curve of every finished run, the mix of the first two, and their pictures."""
-    from nerfart_plugin.evaluation import ImageNetJudge
+    from nerfart_plugin.objectives.evaluation import ImageNetJudge
 
     runs = [r for r in folders if (r / "final.ckpt").is_file()]
     if not runs:
@@ -407,7 +407,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             raw = measure(args.runs or default_runs())
         if args.vs_training:
-            from nerfart_plugin.evaluation import ImageNetJudge
+            from nerfart_plugin.objectives.evaluation import ImageNetJudge
 
             raw["vs_training"] = dial_vs_training(args.vs_training, snapshot_overrides(args.vs_training, args.out_root),
                                                   ImageNetJudge())

@@ -95,11 +95,11 @@ def clip_reference(reps: int, model_overrides: Optional[dict] = None, batch: int
 
 # --------------------------------------------------------------------------- scene and system
 class Context:
-    """Scene, setup and source weights shared by every run (built through :mod:`nerfart_plugin.factories`)."""
+    """Scene, setup and source weights shared by every run (built through :mod:`nerfart_plugin.run.factories`)."""
 
     def __init__(self, overrides: list[str], source_checkpoint: Optional[Path], source: str = "fresh") -> None:
-        from nerfart_plugin.factories import build_renderer, build_scene, load_renderer_state
-        from nerfart_plugin.stages import ReconstructStage
+        from nerfart_plugin.run.factories import build_renderer, build_scene, load_renderer_state
+        from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 
         self.base = overrides
         self.occupied: Optional[float] = None
@@ -123,7 +123,7 @@ class Context:
 def view_resolution(ctx: "Context") -> int:
     """The long side (pixels) of the view the stylization step renders: ``stylize.resolution`` as the
     system resolves it (``auto``: the loaded images' own)."""
-    from nerfart_plugin.factories import stylize_settings
+    from nerfart_plugin.run.factories import stylize_settings
 
     return int(stylize_settings(ctx.scene).resolution)
 
@@ -133,8 +133,8 @@ def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[in
     """Part 0: PSNR of K-sample renders of the source against a 256-sample render, and seconds per view."""
     import torch
 
-    from nerfart_plugin.factories import build_renderer
-    from nerfart_plugin.losses import psnr
+    from nerfart_plugin.run.factories import build_renderer
+    from nerfart_plugin.objectives.losses import psnr
     from nerfart_plugin.rendering.two_pass import render_fixed_samples
 
     r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
@@ -168,9 +168,9 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
     """``steps`` stylization steps toward ``prompt`` with the composed config; per-step timings (+ CLIP score)."""
     import lightning as L
 
-    from nerfart_plugin.evaluation import clip_scores
-    from nerfart_plugin.factories import build_style, build_stylization_system
-    from nerfart_plugin.fit import train_steps
+    from nerfart_plugin.objectives.evaluation import clip_scores
+    from nerfart_plugin.run.factories import build_style, build_stylization_system
+    from nerfart_plugin.run.fit import train_steps
 
     c = common.compose(["stage=stylize", f"+prompt={json.dumps(prompt)}", *ctx.base, *overrides])
     L.seed_everything(int(c["seed"]), verbose=False)

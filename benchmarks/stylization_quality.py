@@ -5,7 +5,7 @@ CLIP weights cannot be downloaded here, so the guide is ``guidance=imagenet``
 losses Eq. 3-8) and the judge is EfficientNet-Lite2, which never guides: it
 classifies the HELD-OUT views (never used in stylization) of source and
 stylized, at the stylization resolution. Each configuration runs the whole
-pipeline as a user does (``nerfart_plugin.pipeline.run``: the cached
+pipeline as a user does (``nerfart_plugin.run.pipeline.run``: the cached
 reconstruction, stylization, held-out renders, video, meshes) and the figures
 come from the run's ``metrics.json``:
 
@@ -107,7 +107,7 @@ def summarize(metrics: dict[str, Any], seconds: float) -> dict[str, Any]:
 
 
 def run_one(ov: list[str]) -> dict[str, Any]:
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     t0 = time.perf_counter()
     results = run(common.compose(ov))
@@ -184,7 +184,7 @@ def report(runs: list[dict[str, Any]], info: dict[str, Any], cmd: str, quick: bo
         "same losses, Eq. 3-8). Judge: EfficientNet-Lite2 (never the guide) on the held-out views, at the "
         "stylization resolution. A prompt meets the target when the judge ranks its class top-5 on >= 80% "
         "of the held-out views. Each run is the whole pipeline from a cached reconstruction "
-        f"(`nerfart_plugin.pipeline.run`). Settings: {settings}", "",
+        f"(`nerfart_plugin.run.pipeline.run`). Settings: {settings}", "",
     ]
     headers = ["config", "prompts meeting target", "top-5 source", "top-5 stylized", "judge P(target)",
                "view-consistency ratio", "silhouette IoU", "mean abs disp.", "max abs disp.", "off-surface weight",

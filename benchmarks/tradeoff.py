@@ -62,7 +62,7 @@ def best_by(points: list[tuple[float, float]], t: float, tol: float = 1.0) -> fl
 def is_sdf(r: dict[str, Any]) -> bool:
     """Whether a run's backbone has a surface to export (its field class's ``is_sdf``; the presets
     use the default backbone, volsdf)."""
-    from nerfart_plugin import registry
+    from nerfart_plugin.config import registry
 
     return "preset" in r or bool(getattr(registry.get("backbone", r.get("backbone", "")), "is_sdf", False))
 

@@ -53,7 +53,7 @@ SCREENSHOT = ROOT / "docs" / "images" / "viewer.png"
 def frame_costs(folder: Path, repeats: int) -> dict[str, Any]:
     from nerfart_plugin.api import open_run
     from nerfart_plugin.viewer.cameras import capture_camera
-    from nerfart_plugin.viewer.fields import RunField, ViewSettings
+    from nerfart_plugin.viewer.sources import RunField, ViewSettings
     from nerfart_plugin.viewer.schedule import FrameSchedule
 
     run = open_run(folder, device="cpu")
@@ -90,10 +90,10 @@ def frame_breakdown(folder: Path, side: int = 256, repeats: int = 5) -> dict[str
 
     from nerfart_plugin.api import open_run
     from nerfart_plugin.data.rays import camera_batch
-    from nerfart_plugin.losses import psnr
+    from nerfart_plugin.objectives.losses import psnr
     from nerfart_plugin.viewer.cameras import capture_camera, render_path
     from benchmarks.stylization import timed
-    from nerfart_plugin.viewer.fields import VIEW_CHUNK
+    from nerfart_plugin.viewer.sources import VIEW_CHUNK
 
     run = open_run(folder, device="cpu")
     cams, r = run.cameras, run.renderer
@@ -208,7 +208,7 @@ def watched_in_process(root: Path, steps: int) -> dict[str, Any]:
     import cv2
     import numpy as np
 
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
     from nerfart_plugin.viewer import live
     from nerfart_plugin.viewer.cameras import capture_camera
     from nerfart_plugin.viewer.jobs import TabRenderer

@@ -22,7 +22,7 @@ def gallery_rows(folders: Sequence[Path], labels: Optional[Sequence[str]] = None
     """Per run, its three labelled tiles (uint8 HxWx3 each, the run's own frame size); the stylized tile is
     labelled with ``labels[i]`` when given, else with the run's prompt."""
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.export.video import label_image, to_uint8
+    from nerfart_plugin.utils.images import label_image, to_uint8
 
     if labels is not None and len(labels) != len(folders):
         raise ValueError(f"{len(labels)} labels for {len(folders)} runs: give one label per run")
@@ -40,7 +40,7 @@ def gallery_rows(folders: Sequence[Path], labels: Optional[Sequence[str]] = None
 
 def make_gallery(folders: Sequence[Path], out: Path, labels: Optional[Sequence[str]] = None) -> Path:
     """Write the gallery of ``folders`` (one row per run, labelled as :func:`gallery_rows`) to ``out``."""
-    from nerfart_plugin.export.video import image_grid, save_image
+    from nerfart_plugin.utils.images import image_grid, save_image
 
     out.parent.mkdir(parents=True, exist_ok=True)
     return save_image(image_grid(gallery_rows(folders, labels), ncols=3), out)

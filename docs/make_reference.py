@@ -1,4 +1,4 @@
-"""Write ``docs/reference/settings.md`` from the typed config (``nerfart_plugin.schema``), the one source of
+"""Write ``docs/reference/settings.md`` from the typed config (``nerfart_plugin.config.schema``), the one source of
 every setting, its default and its meaning, and ``docs/reference/errors.md`` from the error classes
 (``nerfart_plugin.errors``): ``python docs/make_reference.py``. ``tests/test_docs.py`` fails when a committed
 page is not what this script writes."""
@@ -14,7 +14,7 @@ ERRORS_PAGE = ROOT / "docs" / "reference" / "errors.md"
 
 
 def settings_page() -> str:
-    from nerfart_plugin.config_help import settings_rows
+    from nerfart_plugin.config.compose import settings_rows
 
     lines = ["# Settings reference", "",
              "Every setting of the sections with fixed keys, generated from the typed config "
@@ -51,9 +51,9 @@ COMPONENT_KINDS = (("data", "the scene loaders", "`data=<kind>` picks the loader
 
 def component_lines() -> list[str]:
     """One table per registered loader, backbone and encoding, from the typed ``Config`` beside each."""
-    from nerfart_plugin import registry
-    from nerfart_plugin.components import config_of
-    from nerfart_plugin.config_help import settings_rows
+    from nerfart_plugin.config import registry
+    from nerfart_plugin.config.components import config_of
+    from nerfart_plugin.config.compose import settings_rows
 
     lines: list[str] = []
     for kind, title, intro in COMPONENT_KINDS:

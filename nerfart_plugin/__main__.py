@@ -9,7 +9,7 @@ Examples::
     python -m nerfart_plugin --help             # groups and options
 
 Before Hydra parses the command line, :func:`normalize_overrides`
-(:mod:`nerfart_plugin.overrides`) quotes prompt text for Hydra's grammar (any
+(:mod:`nerfart_plugin.config.overrides`) quotes prompt text for Hydra's grammar (any
 prompt works; repeat ``+prompt=`` to sweep several) and folds ``+key`` into a
 plain override where Hydra 1.3 would refuse it (a key that already has a default).
 """
@@ -23,16 +23,16 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from nerfart_plugin.config_paths import config_dir
-from nerfart_plugin.overrides import PrimaryConfig, normalize_overrides  # noqa: F401  (public: used by tests)
-from nerfart_plugin.plugins import searchpath_overrides
+from nerfart_plugin.config.compose import config_dir
+from nerfart_plugin.config.overrides import PrimaryConfig, normalize_overrides  # noqa: F401  (public: used by tests)
+from nerfart_plugin.config.plugins import searchpath_overrides
 
 log = logging.getLogger("nerfart_plugin")
 
 
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 def _app(cfg: DictConfig) -> float | None:
-    """Run the pipeline; return the sweep objective (see :func:`nerfart_plugin.sweep.objective`).
+    """Run the pipeline; return the sweep objective (see :func:`nerfart_plugin.run.sweep.objective`).
 
     Hydra ignores the return value of a plain run; a sweeper such as Optuna
     (``hydra/sweeper=lambdas_optuna``) maximizes it. ``None`` (a failed job, or a
@@ -42,8 +42,8 @@ def _app(cfg: DictConfig) -> float | None:
     from hydra.types import RunMode
 
     from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
-    from nerfart_plugin.pipeline import run
-    from nerfart_plugin.sweep import objective
+    from nerfart_plugin.run.pipeline import run
+    from nerfart_plugin.run.sweep import objective
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
@@ -76,14 +76,14 @@ _NO_JOB_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", 
 def check_output_root(argv: list[str]) -> None:
     """ConfigError before Hydra writes its run folder under ``output_root`` when that cannot be written
     (a read-only folder, a file in the way, a missing parent that cannot be created, a full disk)."""
-    from nerfart_plugin.overrides import override_value
+    from nerfart_plugin.config.overrides import override_value
     from nerfart_plugin.utils.io import check_writable_dir
 
     if any(a in _NO_JOB_FLAGS for a in argv):
         return
     root = override_value(argv, "output_root")
     if root is None:
-        from nerfart_plugin.schema import RunConfig
+        from nerfart_plugin.config.schema import RunConfig
 
         root = RunConfig.model_fields["output_root"].default
     if isinstance(root, str) and "${" not in root:
@@ -95,13 +95,13 @@ def main() -> None:
 
     try:
         argv = normalize_overrides(sys.argv[1:])
-        argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.plugins)
+        argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.config.plugins)
         check_output_root(argv)
     except ConfigError as exc:  # before Hydra configures logging: Python's last-resort handler prints it to stderr
         log.error("ConfigError: %s", exc)
         sys.exit(2)
     sys.argv = [sys.argv[0], *argv]
-    from nerfart_plugin import sweep
+    from nerfart_plugin.run import sweep
 
     sweep.failed_jobs.clear()
     _app()

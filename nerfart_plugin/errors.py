@@ -30,7 +30,7 @@ class DataError(NerfArtError, ValueError):
          "the message says how many; film more slowly, with more overlap, or pass frames (`data.path=<folder>`)"),
         ("malformed `cameras.npz`, `poses_bounds.npy`, `transforms.json` or a COLMAP model",
          "the message names the key or line; regenerate the file with the tool that wrote it"),
-        ("a mesh or camera-path file that cannot be read (`nerfart_plugin.view`, `render.path=<file>`)",
+        ("a mesh or camera-path file that cannot be read (`nerfart_plugin.viewer.mesh`, `render.path=<file>`)",
          "give a PLY/OBJ/GLB mesh, a nerfstudio `camera_path.json`"),
     )
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig
 
-from nerfart_plugin.factories import load_config
+from nerfart_plugin.config.compose import load_config
 
 #: tiny but complete runs (24 px, 16 samples): every end-to-end test starts from these
 TINY = [

@@ -6,7 +6,7 @@ import torch
 
 from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.data.setup import SceneSetup
 
 
 def tiny_renderer(backbone: str, occupancy: int, samples: int = 12, **backbone_kw: object) -> torch.nn.Module:
@@ -30,8 +30,8 @@ def check_sharp_surface_under_autocast(backbone: str, device: torch.device, dtyp
     40 dB of float32's and the finite-difference SDF gradient (eikonal, normals) within 0.02. A bfloat16
     cell index (exact only to 256) read the wrong occupancy cells (a trained selfie rendered 11.7 dB from
     float32) and a bfloat16 geometry net made the gradient's difference quotient noise."""
-    from nerfart_plugin.losses import psnr
-    from nerfart_plugin.systems.base import to_device
+    from nerfart_plugin.objectives.losses import psnr
+    from nerfart_plugin.utils.device import to_device
 
     torch.manual_seed(0)
     sharp = {"beta_init": 0.002} if backbone == "volsdf" else {"init_variance": 0.7}
@@ -58,7 +58,7 @@ OPAQUE = {
 
 def retained_graph_ray_losses() -> dict:
     """Eq. 7 and the field's regularizers (eikonal for the SDF fields), as the stylization passes them."""
-    from nerfart_plugin.losses import weight_regularization
+    from nerfart_plugin.objectives.losses import weight_regularization
 
     return {"reg": (0.1, lambda o, _: weight_regularization(o["weights"], o["t"])),
             "eikonal": (0.1, lambda o, _: o["regularizers"].get("eikonal", o["rgb"].sum() * 0))}
@@ -72,7 +72,7 @@ def check_retained_graph_matches_the_patches(backbone: str, occupancy: int, devi
 
     from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
                                                    render_with_graph)
-    from nerfart_plugin.systems.base import to_device
+    from nerfart_plugin.utils.device import to_device
 
     torch.manual_seed(0)
     r = tiny_renderer(backbone, occupancy, 32, **OPAQUE[backbone]).to(device)

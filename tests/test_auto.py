@@ -6,8 +6,8 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from nerfart_plugin.auto import AUTO_SETTINGS, component_choices, recorded, setting_of
-from nerfart_plugin.config_paths import config_dir
+from nerfart_plugin.config.auto import AUTO_SETTINGS, component_choices, recorded, setting_of
+from nerfart_plugin.config.compose import config_dir
 
 from pipeline_helpers import composed
 

@@ -225,7 +225,7 @@ def test_stylization_view_resolution_resolves_auto() -> None:
     """stylize.resolution=auto (the default) is the loaded images' long side, as the system resolves it."""
     from types import SimpleNamespace
 
-    from nerfart_plugin.schema import StylizeConfig
+    from nerfart_plugin.config.schema import StylizeConfig
 
     mod = _load("stylization")
 

@@ -1,4 +1,4 @@
-"""The strength dial and style mixing (nerfart_plugin.blend, api.Run.with_strength, api.mix, strength=)."""
+"""The strength dial and style mixing (nerfart_plugin.results.blend, api.Run.with_strength, api.mix, strength=)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfart_plugin.blend import blend_states, blend_tag, check_strength, check_weights
+from nerfart_plugin.results.blend import blend_states, blend_tag, check_strength, check_weights
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 from nerfart_plugin.errors import ConfigError, NerfArtError
 
@@ -53,7 +53,7 @@ STYLE = ["guidance=toy", "reconstruct.steps=20", "stylize.steps=4", "stylize.lr=
 @pytest.fixture(scope="module")
 def styles(shared_runs) -> dict[str, Path]:
     """Two toy stylizations of one tiny reconstruction of the shipped head, and one of another (seed 1)."""
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     out = {}
     for name, extra in (("red", ["prompt=red"]), ("blue", ["prompt=blue"]), ("other", ["prompt=red", "seed=1"])):
@@ -69,7 +69,7 @@ def _state_equal(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 @pytest.mark.slow
 def test_strength_zero_is_the_source_one_is_the_run_and_beyond_gets_its_own_grid(styles):
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.blend import refresh_occupancy
+    from nerfart_plugin.results.blend import refresh_occupancy
 
     run = open_run(styles["red"], device="cpu")
     zero, one, past = run.with_strength(0.0), run.with_strength(1.0), run.with_strength(1.5)
@@ -153,8 +153,8 @@ def test_render_and_export_stages_mix_runs_into_the_first_runs_folder(styles, tm
 
 
 def test_mix_settings_are_checked_before_any_work():
-    from nerfart_plugin.factories import load_config
-    from nerfart_plugin.schema import parse_config
+    from nerfart_plugin.config.compose import load_config
+    from nerfart_plugin.config.schema import parse_config
 
     def issues(*overrides: str) -> str:
         with pytest.raises(ConfigError) as exc:
@@ -264,7 +264,7 @@ def test_the_strength_benchmark_sets_the_dial_beside_training(tmp_path):
     root (no snapshots taken) is refused."""
     from benchmarks import strength
 
-    from nerfart_plugin.evaluation import ImageNetJudge
+    from nerfart_plugin.objectives.evaluation import ImageNetJudge
 
     from pipeline_helpers import TINY
 

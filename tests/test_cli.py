@@ -15,7 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nerfart_plugin.__main__ import normalize_overrides
-from nerfart_plugin.config_paths import config_dir, group_options
+from nerfart_plugin.config.compose import config_dir, group_options
 
 from pipeline_helpers import composed, run_cli, run_cli_subprocess
 
@@ -87,8 +87,8 @@ def test_plus_data_at_package_composes_a_second_data_config():
     """``+data@foo=h3ds`` is Hydra's own: the composed config gains a second data package ``foo`` (the
     first ``data`` untouched), which the schema then names as an unknown top-level key."""
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.factories import load_config
-    from nerfart_plugin.schema import check_settings, to_plain
+    from nerfart_plugin.config.compose import load_config
+    from nerfart_plugin.config.schema import check_settings, to_plain
 
     cfg = load_config(normalize_overrides(["data=llff", "data.path=x", "+data@foo=h3ds"]))
     assert cfg.foo.kind == "h3ds" and cfg.data.kind == "llff"
@@ -132,7 +132,7 @@ def test_any_text_survives_hydra_quoting(text):
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from omegaconf import OmegaConf
 
-    from nerfart_plugin.overrides import hydra_quote
+    from nerfart_plugin.config.overrides import hydra_quote
 
     value = OverridesParser.create().parse_override("prompt=" + hydra_quote(text)).value()
     assert OmegaConf.to_container(OmegaConf.create({"prompt": value}), resolve=True)["prompt"] == text
@@ -358,7 +358,7 @@ def test_wheel_ships_configs_assets_and_negatives(tmp_path):
     assert proc.returncode == 0, proc.stderr[-3000:]
     env = {**os.environ, "PYTHONPATH": str(target)}
     code = (
-        "import nerfart_plugin, nerfart_plugin.config_paths as c; "
+        "import nerfart_plugin, nerfart_plugin.config.compose as c; "
         "print(nerfart_plugin.__file__); print(c.config_dir())"
     )
     proc = subprocess.run(

@@ -14,10 +14,11 @@ from hypothesis import strategies as st
 from omegaconf import OmegaConf
 from pydantic import BaseModel
 
-from nerfart_plugin import config_components, config_help, config_issues, schema
-from nerfart_plugin.config_paths import config_dir, group_options
+from nerfart_plugin.config import (sections as config_components, compose as config_help, issues as config_issues,
+    schema)
+from nerfart_plugin.config.compose import config_dir, group_options
 from nerfart_plugin.errors import ConfigError, NerfArtError
-from nerfart_plugin.pipeline import Pipeline, validate_config
+from nerfart_plugin.run.pipeline import Pipeline, validate_config
 
 from pipeline_helpers import composed, run_cli_subprocess
 
@@ -201,7 +202,7 @@ GUIDANCE_KEYS = {(): "f3b25190bc95", ("guidance=toy",): "03c3829bbda7", ("guidan
 
 @pytest.mark.parametrize("overrides", list(COMPONENT_KEYS))
 def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
-    from nerfart_plugin.runs import config_hash
+    from nerfart_plugin.utils.io import config_hash
 
     run, _ = schema.parse_config(cfg(*overrides))
     sections = {"backbone": run.backbone, "encoding": run.encoding,
@@ -211,7 +212,7 @@ def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tupl
 
 @pytest.mark.parametrize("overrides", list(GUIDANCE_KEYS))
 def test_the_guidance_section_keeps_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
-    from nerfart_plugin.runs import config_hash
+    from nerfart_plugin.utils.io import config_hash
 
     run, _ = schema.parse_config(cfg(*overrides))
     assert config_hash({"guidance": run.guidance}) == GUIDANCE_KEYS[overrides]
@@ -368,7 +369,7 @@ def _build_cheap_components(c: dict, tmp: Path) -> None:
     from nerfart_plugin.export import MeshExtractor
     from nerfart_plugin.fields import OccupancyGrid, build_field
     from nerfart_plugin.guidance import build_guidance, build_perceptual
-    from nerfart_plugin.fit import build_trainer
+    from nerfart_plugin.run.fit import build_trainer
 
     if _small(c):
         build_field(c["backbone"], c["encoding"], bound=float(c["render"]["ndc_bound"]))
@@ -460,8 +461,8 @@ def test_component_yaml_repeats_the_constructor_defaults(group: str) -> None:
     default of the component's Config (or wires a render.* knob), so the Python API and the CLI build one model."""
     import yaml
 
-    from nerfart_plugin import registry
-    from nerfart_plugin.components import config_of
+    from nerfart_plugin.config import registry
+    from nerfart_plugin.config.components import config_of
 
     for path in sorted((config_dir() / group).glob("*.yaml")):
         values = yaml.safe_load(path.read_text())
@@ -479,7 +480,7 @@ def test_explicit_source_checkpoint_key_covers_its_content_and_the_render_settin
     settings the stylization uses: re-training into the same path or a new background is a new run."""
     from types import SimpleNamespace
 
-    from nerfart_plugin.stages import stylization_source
+    from nerfart_plugin.run.stages.stylize import stylization_source
 
     ckpt = tmp_path / "final.ckpt"
     ckpt.write_bytes(b"one")
@@ -499,8 +500,8 @@ def test_every_stage_has_one_plan():
     """stage= is dispatched through one table (pipeline.PLANS): every choice of the schema has its plan."""
     from typing import get_args
 
-    from nerfart_plugin.pipeline import PLANS
-    from nerfart_plugin.schema import RunConfig
+    from nerfart_plugin.run.pipeline import PLANS
+    from nerfart_plugin.config.schema import RunConfig
 
     assert sorted(PLANS) == sorted(get_args(RunConfig.model_fields["stage"].annotation))
     assert [p for p, plan in PLANS.items() if plan.needs_prompt] == ["stylize", "all", "preview"]
@@ -510,7 +511,7 @@ def test_every_stage_has_one_plan():
 def test_a_registered_perceptual_network_is_picked_by_name(monkeypatch):
     """``guidance.perceptual`` names any network of the ``perceptual`` registry (a plugin's too), and a typo gets
     the closest registered name."""
-    from nerfart_plugin import registry
+    from nerfart_plugin.config import registry
     from nerfart_plugin.guidance import build_perceptual
     from nerfart_plugin.guidance.vgg import EdgePerceptual
 

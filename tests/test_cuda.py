@@ -15,7 +15,7 @@ from render_helpers import (check_retained_graph_matches_the_patches, check_shar
                             front_view, tiny_renderer)
 
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
-from nerfart_plugin.systems.base import to_device
+from nerfart_plugin.utils.device import to_device
 
 pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device on this machine")]
@@ -109,7 +109,7 @@ def test_tiny_pipeline_on_cuda(tmp_path: Path, precision: str) -> None:
     """Reconstruct and stylize the shipped head on device=cuda: checkpoints load back on the CPU."""
     from nerfart_plugin.api import open_run
     from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     res = run(tiny_cfg(tmp_path, DEFAULT_SCENE, "device=cuda", f"trainer.precision={precision}", "guidance=toy",
                        "prompt=red", "reconstruct.steps=30", "stylize.steps=3"))

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nerfart_plugin import registry
+from nerfart_plugin.config import registry
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import default_scene_path
 from nerfart_plugin.data.llff import read_poses_bounds
@@ -36,9 +36,9 @@ def test_registry_names():
 def test_every_loader_declares_its_settings_and_refuses_unknown_options():
     """Each loader's typed Config is its settings (what the schema checks and --help lists); an unknown or
     mistyped option, from Python or from the command line, is one ConfigError with the closest valid name."""
-    from nerfart_plugin.components import config_of
+    from nerfart_plugin.config.components import config_of
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.config_components import check_data
+    from nerfart_plugin.config.sections import check_data
 
     for kind in registry.names("data"):
         fields = config_of(registry.get("data", kind)).model_fields

@@ -173,7 +173,7 @@ def test_blender_rgba_scene(tmp_path, head):
 
 
 def test_background_colour_comes_from_the_config(tmp_path, head):
-    from nerfart_plugin.pipeline import Pipeline
+    from nerfart_plugin.run.pipeline import Pipeline
 
     from pipeline_helpers import tiny_cfg
 

@@ -131,7 +131,7 @@ def test_video_cache_goes_under_the_output_root(shared_data, tmp_path):
     sys.path.insert(0, str(Path(__file__).parent))
     from pipeline_helpers import tiny_cfg
 
-    from nerfart_plugin.pipeline import Pipeline
+    from nerfart_plugin.run.pipeline import Pipeline
 
     data = tmp_path / "data"
     data.mkdir()

@@ -40,7 +40,7 @@ def job_overrides(command: str) -> list[list[str]]:
     from hydra._internal.core_plugins.basic_sweeper import BasicSweeper
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from nerfart_plugin.overrides import normalize_overrides
+    from nerfart_plugin.config.overrides import normalize_overrides
 
     argv = shlex.split(_PLACEHOLDER.sub("placeholder", command), comments=True)[3:]
     flags = [a for a in argv if a.startswith("-")]
@@ -59,8 +59,8 @@ def test_the_docs_document_commands():
 
 @pytest.mark.parametrize("page,command", documented_commands(), ids=lambda v: v if len(v) < 60 else v[:60])
 def test_every_documented_command_composes_and_validates(page, command):
-    from nerfart_plugin.factories import load_config
-    from nerfart_plugin.schema import parse_config
+    from nerfart_plugin.config.compose import load_config
+    from nerfart_plugin.config.schema import parse_config
 
     if "--help" in command:
         return
@@ -74,7 +74,7 @@ def test_the_settings_reference_is_what_the_schema_says():
     assert page.read_text() == make["settings_page"](), "run: python docs/make_reference.py"
     errors = REPO / "docs" / "reference" / "errors.md"
     assert errors.read_text() == make["errors_page"](), "run: python docs/make_reference.py"
-    from nerfart_plugin.config_help import settings_rows
+    from nerfart_plugin.config.compose import settings_rows
 
     assert all(f"`{key}`" in page.read_text() for key, *_ in settings_rows())
 

@@ -1,4 +1,4 @@
-"""python -m nerfart_plugin.download: sample captures with checksums, tested against the local mirror."""
+"""python -m nerfart_plugin.data.download: sample captures with checksums, tested against the local mirror."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from nerfart_plugin.download import download, main, manifest
+from nerfart_plugin.data.download import download, main, manifest
 from nerfart_plugin.errors import DataError, NerfArtError
 
 MIRROR = Path(os.environ.get("NERFART_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data"))
@@ -34,7 +34,8 @@ def test_download_checks_every_file_resumes_and_loads(tmp_path, caplog):
     before = {f: f.stat().st_mtime_ns for f in (folder / "matte").iterdir()}
     download("girl", tmp_path, mirror=str(MIRROR))
     assert image.stat().st_size > 1000 and before == {f: f.stat().st_mtime_ns for f in (folder / "matte").iterdir()}
-    from nerfart_plugin.factories import build_scene, load_config
+    from nerfart_plugin.run.factories import build_scene
+    from nerfart_plugin.config.compose import load_config
 
     scene = build_scene(load_config(["data=h3ds", f"data.path={folder}", "data.resolution=64"])).scene
     assert scene.num_images == 31

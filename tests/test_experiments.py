@@ -33,7 +33,7 @@ def test_command_line_beats_preset() -> None:
 
 def test_ddp_settings_reach_the_trainer_and_stylize_refuses_them() -> None:
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.pipeline import validate_config
+    from nerfart_plugin.run.pipeline import validate_config
 
     cfg = _compose("stage=reconstruct", "trainer.strategy=ddp", "trainer.devices=4", "trainer.num_nodes=2")
     validate_config(cfg)  # allowed for the reconstruction stage
@@ -44,7 +44,7 @@ def test_ddp_settings_reach_the_trainer_and_stylize_refuses_them() -> None:
 def test_trainer_gets_strategy_devices_nodes(tmp_path) -> None:
     import torch
 
-    from nerfart_plugin.fit import build_trainer
+    from nerfart_plugin.run.fit import build_trainer
 
     t = build_trainer(3, torch.device("cpu"), {"strategy": "auto", "devices": 1, "num_nodes": 1,
                                                 "precision": "32-true", "log_every_n_steps": 1}, run_dir=tmp_path)

@@ -11,7 +11,7 @@ import trimesh
 
 from nerfart_plugin.data.rays import ndc_rays
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.export.frames import frame_metadata, ndc_to_normalized, to_frame
+from nerfart_plugin.export.world_frame import frame_metadata, ndc_to_normalized, to_frame
 from nerfart_plugin.export.mesh import export_mesh
 
 

@@ -9,7 +9,7 @@ import logging
 import pytest
 import torch
 
-from nerfart_plugin import registry
+from nerfart_plugin.config import registry
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields import EnvironmentMap, OccupancyGrid, build_background, build_field
 from nerfart_plugin.fields.encodings import FrequencyEncoding, SHEncoding, TensorVMGridEncoding, level_sides
@@ -265,7 +265,7 @@ def test_systems_adam_is_fused_on_cpu_and_steps_like_plain_adam() -> None:
 def test_sharp_softplus_is_softplus_with_its_gradients_at_the_extremes() -> None:
     """The geometry nets' fast softplus equals F.softplus(beta=100) from deep negative to huge inputs, in
     float32 and bfloat16, and its first and second derivatives are softplus' (the analytic eikonal)."""
-    from nerfart_plugin.fields.base import SharpSoftplus
+    from nerfart_plugin.fields.mlp import SharpSoftplus
 
     act = SharpSoftplus(100.0)
     x = torch.cat([torch.linspace(-1.0, 1.0, 200001), torch.tensor([-1e30, -50.0, 0.0, 50.0, 1e30])])

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from nerfart_plugin.guidance.base import WeightsPolicy
-from nerfart_plugin import losses
+from nerfart_plugin.objectives import losses
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import EdgePerceptual, Perceptual, build_perceptual
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.loggers import build_loggers, log_images
+from nerfart_plugin.systems.loggers import build_loggers, log_images
 
 
 def test_tensorboard_writes_scalars_and_images(tmp_path) -> None:

@@ -10,7 +10,7 @@ from nerfart_plugin.guidance import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer, step_seed
 from nerfart_plugin.systems.reconstruction import RECONSTRUCTION_LOSSES, ReconstructionSystem
-from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.systems.stylization import StylizationSystem
 from nerfart_plugin.systems.stylization_losses import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES
 
@@ -38,7 +38,7 @@ def _recon(tv_weight: float, rays: dict | None = None, **cfg) -> ReconstructionS
 
 
 def test_every_term_is_one_row_with_its_lambda():
-    from nerfart_plugin.schema import ExperimentConfig, ReconstructConfig
+    from nerfart_plugin.config.schema import ExperimentConfig, ReconstructConfig
 
     for table, section in ((RECONSTRUCTION_LOSSES, ReconstructConfig),
                            (STYLIZATION_IMAGE_LOSSES + STYLIZATION_RAY_LOSSES, ExperimentConfig)):

@@ -1,4 +1,4 @@
-"""Tests of nerfart_plugin.losses (Eq. 2-9) against hand computations and brute force."""
+"""Tests of nerfart_plugin.objectives.losses (Eq. 2-9) against hand computations and brute force."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nerfart_plugin import losses
+from nerfart_plugin.objectives import losses
 from nerfart_plugin.errors import ConfigError
 
 

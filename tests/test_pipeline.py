@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from nerfart_plugin.errors import TrainingDivergedError
-from nerfart_plugin.pipeline import Pipeline
+from nerfart_plugin.run.pipeline import Pipeline
 from nerfart_plugin.systems.callbacks import check_finite_losses
 
 from pipeline_helpers import cli_args, tiny_cfg
@@ -155,7 +155,7 @@ def test_export_stage_writes_meshes_in_every_format(shared_root: Path, small_hea
 
 def test_out_of_memory_names_the_settings_to_lower(monkeypatch) -> None:
     from nerfart_plugin.errors import NerfArtError
-    from nerfart_plugin.fit import run_fit
+    from nerfart_plugin.run.fit import run_fit
 
     class Boom:
         def fit(self, *a, **k):

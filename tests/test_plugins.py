@@ -14,7 +14,7 @@ from pipeline_helpers import cli_args, run_cli_subprocess
 PLUGIN_MODULE = '''
 """A third-party backbone: VolSDF with a different name (registered on import)."""
 from nerfart_plugin.fields.volsdf import VolSDFField
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 
 
 @register("backbone", "tiny_sdf")
@@ -31,7 +31,7 @@ build-backend = "setuptools.build_meta"
 name = "tiny-sdf-plugin"
 version = "0.0.1"
 
-[project.entry-points."nerfart_plugin.components"]
+[project.entry-points."nerfart_plugin.config.components"]
 tiny_sdf = "tiny_sdf_plugin.fields"
 
 [project.entry-points."nerfart_plugin.configs"]
@@ -85,7 +85,7 @@ def test_installed_plugin_backbone_is_used_by_name(tmp_path: Path) -> None:
 def test_a_broken_plugin_is_a_clear_error(monkeypatch) -> None:
     from importlib.metadata import EntryPoint
 
-    import nerfart_plugin.plugins as plugins
+    import nerfart_plugin.config.plugins as plugins
     from nerfart_plugin.errors import ConfigError
 
     broken = EntryPoint(name="broken", value="no_such_module_xyz", group=plugins.COMPONENTS_GROUP)
@@ -97,7 +97,7 @@ def test_a_broken_plugin_is_a_clear_error(monkeypatch) -> None:
 
 
 def test_searchpath_override(monkeypatch) -> None:
-    import nerfart_plugin.plugins as plugins
+    import nerfart_plugin.config.plugins as plugins
 
     monkeypatch.setattr(plugins, "config_packages", lambda: [("a", "pkg_a.conf"), ("b", "pkg_b.conf")])
     assert plugins.searchpath_overrides(["x=1"]) == ["hydra.searchpath=[pkg://pkg_a.conf,pkg://pkg_b.conf]"]

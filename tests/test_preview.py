@@ -17,7 +17,7 @@ TINY_STYLE = ["reconstruct.steps=20", "stylize.lr=0.01", "guidance=toy", "data.r
 
 @pytest.mark.slow
 def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, caplog):
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     cfg = tiny_cfg(shared_runs, DEFAULT_SCENE, *TINY_STYLE, "stage=preview", "prompt=zebra", "preview.steps=3",
                    "preview.resolution=24")

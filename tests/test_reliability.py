@@ -21,7 +21,7 @@ import torch
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 from nerfart_plugin.errors import CheckpointError, ConfigError, NerfArtError, RunInterrupted, RunLockedError
-from nerfart_plugin.pipeline import Pipeline
+from nerfart_plugin.run.pipeline import Pipeline
 from nerfart_plugin.utils.lock import lock_path
 
 from pipeline_helpers import REPO, cli_args, run_cli, run_cli_subprocess, tiny_cfg
@@ -362,7 +362,7 @@ def test_files_that_are_not_checkpoints_are_clear_errors(tmp_path):
 
 @pytest.mark.slow
 def test_foreign_and_newer_checkpoints(tmp_path, nerf_final):
-    from nerfart_plugin.checkpoints import load_checkpoint
+    from nerfart_plugin.systems.checkpoints import load_checkpoint
 
     ckpt = torch.load(nerf_final, map_location="cpu", weights_only=True)
     foreign = {"state_dict": {k: v[..., :1] if v.dim() else v for k, v in ckpt["state_dict"].items()}}
@@ -392,8 +392,8 @@ def test_an_incompatible_last_ckpt_is_not_resumed(tmp_path, nerf_final):
 
 @pytest.mark.slow
 def test_checkpoints_of_version_0_1_0_with_a_scene_setup_object_still_load(tmp_path, nerf_final):
-    from nerfart_plugin.checkpoints import load_checkpoint
-    from nerfart_plugin.systems.scene_setup import SceneSetup
+    from nerfart_plugin.systems.checkpoints import load_checkpoint
+    from nerfart_plugin.data.setup import SceneSetup
 
     ckpt = torch.load(nerf_final, map_location="cpu", weights_only=True)
     ckpt.pop("nerfart")
@@ -497,7 +497,7 @@ def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, ca
     """Truncating a finished run's final.ckpt used to make the same command say "already complete";
     now the damage is found, the file kept aside, and the run trained again from its last.ckpt."""
     from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     from pipeline_helpers import tiny_cfg
 
@@ -513,7 +513,7 @@ def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, ca
     aside = list(folder.glob("final.ckpt.damaged-*"))
     assert len(aside) == 1 and aside[0].stat().st_size == len(healthy) // 2  # kept, not deleted
     assert Path(again["reconstruction"]["dir"]) == folder and final.is_file()
-    from nerfart_plugin.runs import checkpoint_damage
+    from nerfart_plugin.run.folders import checkpoint_damage
 
     assert checkpoint_damage(final) is None  # healthy again, with a fresh hash
 
@@ -521,7 +521,7 @@ def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, ca
 def test_an_evaluation_on_training_views_is_labelled_as_such():
     import types
 
-    from nerfart_plugin.evaluation import evaluation_views
+    from nerfart_plugin.objectives.evaluation import evaluation_views
 
     assert evaluation_views(types.SimpleNamespace(train_ids=[1, 2, 3], val_ids=[0], num_images=4)) == "held-out views"
     for scene in (types.SimpleNamespace(train_ids=[], val_ids=[0, 1, 2], num_images=3),  # data.holdout_every=1
@@ -534,7 +534,7 @@ def test_a_stylization_that_lost_its_subject_says_so(caplog):
     short reconstruction leave only background) gets a WARNING in metrics.json and the log, with what to change."""
     import logging
 
-    from nerfart_plugin.evaluation import LOST_SUBJECT_IOU, lost_subject
+    from nerfart_plugin.objectives.evaluation import LOST_SUBJECT_IOU, lost_subject
 
     with caplog.at_level(logging.WARNING, logger="nerfart_plugin"):
         text = lost_subject(0.0)

@@ -14,9 +14,9 @@ import torch
 from pipeline_helpers import run_cli, tiny_cfg
 
 from nerfart_plugin.data import load_scene
-from nerfart_plugin.data.camera_path import CaptureCameras, viewer_cameras
+from nerfart_plugin.cameras.capture import CaptureCameras, viewer_cameras
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-from nerfart_plugin.data.render_path import read_camera_path, resolve_path, write_camera_path
+from nerfart_plugin.cameras.path import read_camera_path, resolve_path, write_camera_path
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.rendering.frames import colorize_depth, depth_normals
 
@@ -114,7 +114,7 @@ def test_finished_runs_re_render_along_any_path(tmp_path: Path) -> None:
     """A toy stylization, then stage=render from the CLI (no training): every channel as mp4 + PNGs and a
     camera_path.json, which rendered again gives the same frames; the API renders the same cameras."""
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     res = run(tiny_cfg(tmp_path, DEFAULT_SCENE, "guidance=toy", "prompt=red", "reconstruct.steps=20",
                        "stylize.steps=2"))

@@ -148,7 +148,7 @@ def test_the_off_surface_share_needs_no_normals(name: str) -> None:
     """The evaluation's off-surface share (``metrics.json``'s ``off_surface_weight``) renders without a graph
     and without the normals (an SDF field's gradient costs a backward pass per sample), and reads the same weights
     as a render with both (NeuS' gradient opacity too)."""
-    from nerfart_plugin.evaluation import off_surface_share, off_surface_weight
+    from nerfart_plugin.objectives.evaluation import off_surface_share, off_surface_weight
 
     r = _renderer(name, 8)
     view = front_view(20, 16, 60.0)

@@ -7,8 +7,9 @@ import math
 import pytest
 import torch
 
-from nerfart_plugin.fields.base import Field
-from nerfart_plugin.rendering import VolumeRenderer, neus_alpha, volsdf_density, volume_weights, weights_from_alpha
+from nerfart_plugin.fields.field import Field
+from nerfart_plugin.rendering import VolumeRenderer, volume_weights, weights_from_alpha
+from nerfart_plugin.fields.opacity import neus_alpha, volsdf_density
 
 LN2, LN4 = math.log(2.0), math.log(4.0)
 

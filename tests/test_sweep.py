@@ -9,9 +9,9 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from nerfart_plugin.config_paths import config_dir
+from nerfart_plugin.config.compose import config_dir
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.sweep import collect, complete_results, markdown_table, objective
+from nerfart_plugin.run.sweep import collect, complete_results, markdown_table, objective
 from pipeline_helpers import TINY_TOY, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
@@ -139,7 +139,7 @@ def test_optuna_sweeper_config_composes():
         assert interval.start < cfg.experiment[key.split(".")[1]] < interval.end, key
         assert "log" in ov.value().tags
     assert [c["_target_"] for c in cfg.hydra.callbacks.values()] == [
-        "nerfart_plugin.sweep.MultirunSummary"
+        "nerfart_plugin.run.sweep.MultirunSummary"
     ]
 
 

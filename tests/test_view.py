@@ -14,7 +14,7 @@ import pytest
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
-from nerfart_plugin.view import load_mesh, main, render_meshes
+from nerfart_plugin.viewer.mesh import load_mesh, main, render_meshes
 
 REPO = Path(__file__).resolve().parents[1]
 SIZE = (240, 200)
@@ -39,9 +39,9 @@ def test_opens_on_the_captures_front_view(tmp_path, mesh_files):
     import json
 
     from nerfart_plugin.data import load_scene
-    from nerfart_plugin.data.camera_path import viewer_cameras
+    from nerfart_plugin.cameras.capture import viewer_cameras
     from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-    from nerfart_plugin.view import capture_view, find_cameras
+    from nerfart_plugin.viewer.mesh import capture_view, find_cameras
 
     cams = viewer_cameras(load_scene("h3ds", DEFAULT_SCENE, resolution=32))
     eye, centre, up = (np.asarray(v) for v in capture_view(cams))
@@ -119,7 +119,7 @@ def test_cli_subprocess(tmp_path, mesh_files):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
 
     def view(*args: str, timeout: int = 120) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "nerfart_plugin.view", *args], cwd=tmp_path, env=env,
+        return subprocess.run([sys.executable, "-m", "nerfart_plugin.viewer.mesh", *args], cwd=tmp_path, env=env,
                               check=False, capture_output=True, text=True, timeout=timeout)
 
     out = tmp_path / "cli.png"

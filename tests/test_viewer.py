@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from nerfart_plugin.data.camera_path import CaptureCameras
-from nerfart_plugin.data.render_path import read_camera_path
+from nerfart_plugin.cameras.capture import CaptureCameras
+from nerfart_plugin.cameras.path import read_camera_path
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.viewer.cameras import (ViewCamera, capture_camera, from_viser, matrix_to_wxyz, render_path,
                                            to_viser, wxyz_to_matrix)
-from nerfart_plugin.viewer.fields import LiveField, ViewSettings, split_frame, timed
+from nerfart_plugin.viewer.sources import LiveField, ViewSettings, split_frame, timed
 from nerfart_plugin.viewer.jobs import TabRenderer
 from nerfart_plugin.viewer.keyframes import catmull_rom, interpolate, save_path
 from nerfart_plugin.viewer.live import LiveViewer, TrainingControl, readouts
@@ -26,7 +26,7 @@ from nerfart_plugin.viewer.schedule import FrameSchedule, wait_for_share
 
 def capture(n: int = 6, H: int = 60, W: int = 80, scale: float = 0.5) -> CaptureCameras:
     """Cameras on a circle looking at the origin, with a world->normalized similarity (scale, shift)."""
-    from nerfart_plugin.data.camera_path import _look_at
+    from nerfart_plugin.cameras.orbits import _look_at
 
     c2w = np.stack([_look_at(np.array([3 * math.cos(a), 0.4, 3 * math.sin(a)]), np.zeros(3), np.array([0, -1.0, 0]))
                     for a in np.linspace(0, 2 * math.pi, n, endpoint=False)])
@@ -224,7 +224,7 @@ def test_pause_holds_the_trainer_resume_and_stop_release_it():
 def test_a_live_frame_is_rendered_on_the_training_thread_between_steps_and_stop_goes_through_the_checkpoint(
         monkeypatch):
     from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt
-    from nerfart_plugin.viewer import fields
+    from nerfart_plugin.viewer import sources as fields
 
     threads = []
 

@@ -26,7 +26,7 @@ STYLE = ["guidance=toy", "reconstruct.steps=20", "stylize.steps=4", "stylize.lr=
 
 @pytest.fixture(scope="module")
 def styles(shared_runs) -> dict[str, Path]:
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
 
     return {name: Path(run(tiny_cfg(shared_runs, DEFAULT_SCENE, *STYLE, f"prompt={name}"))["stylization"]["dir"])
             for name in ("red", "blue")}
@@ -47,7 +47,7 @@ def chromium() -> None:
 def test_the_run_field_renders_the_run_its_source_blends_and_splits(styles):
     from nerfart_plugin.api import mix, open_run
     from nerfart_plugin.viewer.cameras import capture_camera
-    from nerfart_plugin.viewer.fields import RunField, ViewSettings, render_frame, sibling_runs
+    from nerfart_plugin.viewer.sources import RunField, ViewSettings, render_frame, sibling_runs
 
     run = open_run(styles["red"], device="cpu")
     assert styles["blue"] in sibling_runs(run)
@@ -175,7 +175,7 @@ def test_each_tab_keeps_its_own_camera_and_a_closed_tab_is_dropped(page):
 
 
 def test_a_keyframe_path_saves_a_camera_path_that_stage_render_renders(page, styles, tmp_path):
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
     from nerfart_plugin.viewer.browser import wait_for
 
     page.open_folder("Camera path")
@@ -202,7 +202,7 @@ def test_a_training_run_is_watched_paused_and_stopped_from_the_browser(page, tmp
     import threading
 
     from nerfart_plugin.errors import RunInterrupted
-    from nerfart_plugin.pipeline import run
+    from nerfart_plugin.run.pipeline import run
     from nerfart_plugin.viewer import live
     from nerfart_plugin.viewer.browser import wait_for
 

@@ -22,7 +22,7 @@ def load_scene(kind: str, path: Any, cfg: Any = None, context: Any = None, **opt
     ``resolution`` (long image side in pixels; antialiased resize, K scaled exactly), ``holdout_every``
     (default 8: ``val_ids = ids[::8]``) and ``use_masks`` (default True); see each loader's ``Config``.
     """
-    from nerfart_plugin import registry
+    from nerfart_plugin.config import registry
 
     return registry.get("data", kind)(path, cfg, context, **options)
 

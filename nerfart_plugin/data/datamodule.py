@@ -21,7 +21,7 @@ from torch.utils.data import DataLoader, Dataset
 from nerfart_plugin.data.rays import rays_for_views
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.schema import to_plain
+from nerfart_plugin.config.schema import to_plain
 
 log = logging.getLogger(__name__)
 

@@ -27,8 +27,8 @@ from typing import Annotated, Any, Optional
 
 import numpy as np
 
-from nerfart_plugin.components import configured
-from nerfart_plugin.config_types import Float, Int, Limits, Resolution, Setting
+from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.types import Float, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
 from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
@@ -42,7 +42,7 @@ from nerfart_plugin.data.images import (
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.errors import DataError
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

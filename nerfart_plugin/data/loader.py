@@ -2,7 +2,7 @@
 it) and what the datamodule hands every loader alike (:class:`LoaderContext`).
 
 A loader is ``fn(path, cfg, context) -> Scene`` registered as ``data``/``<kind>`` and decorated with
-:func:`~nerfart_plugin.components.configured`, so that ``fn(path, resolution=64)`` also works and an
+:func:`~nerfart_plugin.config.components.configured`, so that ``fn(path, resolution=64)`` also works and an
 unknown option is refused with the closest valid names.
 """
 
@@ -12,8 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from nerfart_plugin.components import ComponentConfig
-from nerfart_plugin.config_types import HoldoutEvery, Resolution, Setting
+from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.types import HoldoutEvery, Resolution, Setting
 
 
 class LoaderConfig(ComponentConfig):

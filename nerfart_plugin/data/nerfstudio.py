@@ -66,8 +66,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from nerfart_plugin.components import configured
-from nerfart_plugin.config_types import HoldoutEvery, Setting
+from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.types import HoldoutEvery, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
 from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
@@ -85,7 +85,7 @@ from nerfart_plugin.data.normalize import apply_similarity, detect_capture, simi
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, opencv_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -33,8 +33,8 @@ from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
 
-from nerfart_plugin.components import configured
-from nerfart_plugin.config_types import Float, Fraction, Int, Limits, Resolution, Setting
+from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.types import Float, Fraction, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
 from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
@@ -51,7 +51,7 @@ from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
 
 log = logging.getLogger(__name__)

@@ -278,7 +278,7 @@ def remove_small_components(mesh: trimesh.Trimesh, min_fraction: float) -> trime
 def export_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, meta: dict[str, Any] | None = None) -> Path:
     """Write ``mesh`` as PLY (binary, with vertex colours and attributes), OBJ or GLB, atomically.
 
-    ``meta`` (e.g. :func:`nerfart_plugin.export.frames.frame_metadata`: which frame the vertices
+    ``meta`` (e.g. :func:`nerfart_plugin.export.world_frame.frame_metadata`: which frame the vertices
     are in) goes into the file: ``comment nerfart <json>`` header lines in PLY, ``# nerfart <json>``
     lines in OBJ, the mesh's ``extras`` in GLB.
     """

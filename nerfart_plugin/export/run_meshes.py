@@ -20,8 +20,8 @@ import numpy as np
 import torch
 
 from nerfart_plugin.errors import NerfArtError
-from nerfart_plugin.runs import config_hash
-from nerfart_plugin.schema import result_settings
+from nerfart_plugin.utils.io import config_hash
+from nerfart_plugin.config.schema import result_settings
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json
 
 log = logging.getLogger("nerfart_plugin")
@@ -61,14 +61,14 @@ def export_mesh(scene: Any, field: Any, stem: Path, texture: bool = True):
 
 def in_frame(scene: Any, mesh: Any) -> Any:
     """``mesh`` (field frame: normalized, or NDC for forward-facing captures) in ``export.frame``."""
-    from nerfart_plugin.export.frames import mesh_in_frame
+    from nerfart_plugin.export.world_frame import mesh_in_frame
 
     return mesh_in_frame(mesh, scene.cfg.export.frame, scene.cameras)
 
 
 def write_in_frame(scene: Any, mesh: Any, path: Path) -> Path:
     """Write a field-frame mesh in ``export.frame``, saying so in the file (see :mod:`export.frames`)."""
-    from nerfart_plugin.export.frames import write_mesh_in_frame
+    from nerfart_plugin.export.world_frame import write_mesh_in_frame
 
     return write_mesh_in_frame(mesh, path, scene.cfg.export.frame, scene.cameras)
 

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from nerfart_plugin.fields.base import Field
+from nerfart_plugin.fields.field import Field
 
 
 def _position_rgb(x: torch.Tensor) -> torch.Tensor:
@@ -134,26 +134,3 @@ class DensityFromSDF(Field):
         return {"rgb": _position_rgb(x), "sigma": self.geometry(x)}
 
 
-def chamfer_to_analytic(mesh, field: AnalyticSDF, n_samples: int = 100_000, seed: int = 0) -> dict[str, float]:
-    """Accuracy of ``mesh`` against the TRUE zero level set of an exact analytic SDF.
-
-    mesh -> surface: |sdf| at ``n_samples`` area-uniform samples on the mesh (exact,
-    since the SDF is an exact distance). surface -> mesh: distance from
-    ``n_samples`` samples of the analytic surface to the mesh
-    (``compare.SurfaceDistance``). ``chamfer`` = mean of the two directed means
-    (L1 convention, world units); ``hausdorff`` = max of the two directed maxima.
-    """
-    import trimesh
-
-    from nerfart_plugin.export.compare import SurfaceDistance
-
-    pts, _ = trimesh.sample.sample_surface(mesh, n_samples, seed=seed)
-    with torch.no_grad():
-        d_mesh = field.sdf(torch.as_tensor(pts, dtype=torch.float32)).abs().double().numpy()
-    d_true = SurfaceDistance(mesh, n_samples=n_samples, seed=seed + 1).query(field.sample_surface(n_samples, seed + 2))
-    return {
-        "mesh_to_surface": float(d_mesh.mean()),
-        "surface_to_mesh": float(d_true.mean()),
-        "chamfer": float(0.5 * (d_mesh.mean() + d_true.mean())),
-        "hausdorff": float(max(d_mesh.max(), d_true.max())),
-    }

@@ -8,7 +8,7 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from nerfart_plugin.fields.base import make_mlp
+from nerfart_plugin.fields.mlp import make_mlp
 from nerfart_plugin.fields.encodings import build_encoding
 
 __all__ = ["EnvironmentMap", "build_background"]

@@ -7,7 +7,6 @@ Position encodings take points x [N,3] in world units inside [-bound, bound]^3
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Any, ClassVar, Literal, Optional, Union
 
 import torch
@@ -15,12 +14,13 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
-from nerfart_plugin.components import ComponentConfig
-from nerfart_plugin.config_types import Float, Int, Limits, Setting
+from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.types import Float, Int, Limits, Setting
+from nerfart_plugin.data.setup import AUTO_CELL_PIXELS, AUTO_GRID_MIN
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 
-__all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "auto_grid_resolution", "build_encoding",
+__all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "build_encoding",
            "level_sides"]
 
 
@@ -106,31 +106,10 @@ class FrequencyEncoding(Encoding):
 GridSide = Annotated[Int, Limits(ge=2, le=2048)]
 #: planes + lines of all levels: 2^27 float32 = 512 MiB (x4 with Adam's moments and the gradient)
 MAX_GRID_PARAMS = 2**27
-#: ``resolution: auto`` picks a side in [AUTO_GRID_MIN, AUTO_GRID_MAX], a multiple of AUTO_GRID_STEP
-AUTO_GRID_MIN, AUTO_GRID_MAX, AUTO_GRID_STEP = 128, 512, 32
-#: ``cell_pixels`` default: image pixels per cell that ``resolution: auto`` aims at
-AUTO_CELL_PIXELS = 3.0
-#: ``levels: auto`` for SDF fields (the finest side and two coarser ones, e.g. [32, 64, 128]): on the head
-#: (10 min, VolSDF) held-out masked PSNR read 26.8-26.9 dB against 26.3 dB with one level (README, "grid
-#: encoding"); density fields keep one level (not measured with more)
-AUTO_SDF_LEVELS = 3
-
-
 def level_sides(finest: int, levels: int) -> list[int]:
     """Sides of a ``levels``-level grid whose finest side is ``finest``, coarsest first, each level half the
     side of the next (the coarser ones at least 2): ``level_sides(128, 3) == [32, 64, 128]``."""
     return [max(2, int(finest) // 2**k) if k else int(finest) for k in reversed(range(int(levels)))]
-
-
-def auto_grid_resolution(pixels_per_unit: float, bound: float, cell_pixels: float) -> int:
-    """Grid side for ``encoding.resolution=auto``: the cells across the field box ``[-bound, bound]``
-    such that one cell spans about ``cell_pixels`` image pixels where the scene is
-    (``pixels_per_unit``: image pixels per unit of field coordinates there), rounded up to a multiple
-    of 32 and kept in [128, 512]: 128 is the side every small-image default was measured at, 512 keeps
-    the planes under 7 M parameters."""
-    cells = 2.0 * float(bound) * float(pixels_per_unit) / float(cell_pixels)
-    side = AUTO_GRID_STEP * math.ceil(cells / AUTO_GRID_STEP - 1e-9)
-    return int(min(AUTO_GRID_MAX, max(AUTO_GRID_MIN, side)))
 
 
 @register("encoding", "grid")
@@ -289,7 +268,7 @@ class SHEncoding(Encoding):
 
 def build_encoding(cfg: dict | None, bound: float = 1.0) -> Encoding:
     """Build an encoding from ``{"name": <registered name>, **kwargs}`` (also accepts ``type``/``otype`` as the key)."""
-    from nerfart_plugin import registry
+    from nerfart_plugin.config import registry
 
     cfg = dict(cfg or {"name": "frequency"})
     name = cfg.pop("name", None) or cfg.pop("type", None) or cfg.pop("otype", None)

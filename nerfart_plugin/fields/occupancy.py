@@ -11,7 +11,7 @@ import torch.nn as nn
 from torch import Tensor
 
 if TYPE_CHECKING:  # pragma: no cover
-    from nerfart_plugin.fields.base import Field
+    from nerfart_plugin.fields.field import Field
 
 log = logging.getLogger(__name__)
 

@@ -26,9 +26,9 @@ from typing import Any
 
 from torch import nn
 
-from nerfart_plugin import registry
+from nerfart_plugin.config import registry
 from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", "toy")
-from nerfart_plugin.components import config_of
+from nerfart_plugin.config.components import config_of
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
@@ -67,9 +67,9 @@ __all__ = [
 
 
 def _common(cfg: Any) -> tuple[Any, dict[str, Any]]:
-    """The keys every guidance shares (typed: :class:`~nerfart_plugin.config_components.GuidanceCommon`) and the config."""
-    from nerfart_plugin.config_components import GuidanceCommon
-    from nerfart_plugin.schema import section, to_plain
+    """The keys every guidance shares (typed: :class:`~nerfart_plugin.config.sections.GuidanceCommon`) and the config."""
+    from nerfart_plugin.config.sections import GuidanceCommon
+    from nerfart_plugin.config.schema import section, to_plain
 
     c = to_plain(cfg)
     return section(GuidanceCommon, c, prefix="guidance"), c

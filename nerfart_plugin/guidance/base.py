@@ -1,7 +1,7 @@
 """Abstract image/text guidance encoder (CLIP or a toy stand-in).
 
 A :class:`Guidance` maps images and prompts into a shared embedding space.
-The losses in :mod:`nerfart_plugin.losses` consume its outputs.
+The losses in :mod:`nerfart_plugin.objectives.losses` consume its outputs.
 """
 
 from __future__ import annotations

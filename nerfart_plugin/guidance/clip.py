@@ -36,15 +36,15 @@ import kornia
 import torch
 from torch import Tensor
 
-from nerfart_plugin.auto import dtype_name
-from nerfart_plugin.components import ComponentConfig
-from nerfart_plugin.config_types import Setting
+from nerfart_plugin.config.auto import dtype_name
+from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.types import Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip_weights import find_cached, is_torchscript_archive, missing_message
 from nerfart_plugin.guidance.precision import LowPrecisionWeights, Precision, check_precision, compute_dtype
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +300,7 @@ class CLIPGuidance(Guidance):
         return compute_dtype(self.precision, device, "guidance.clip.precision")
 
     def auto_choices(self, device: torch.device) -> dict[str, str]:
-        """What ``guidance.clip.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.auto`)."""
+        """What ``guidance.clip.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.config.auto`)."""
         return {"guidance.clip.precision": dtype_name(self.compute_dtype(device))}
 
     def _net_image(self, x: Tensor) -> Tensor:

@@ -29,7 +29,7 @@ interface, so Eq. 3-8 run unchanged:
 
 This is a VERIFICATION guide, not CLIP: outputs are stamped ``_VERIFY-imagenet``.
 Lite2 (never the guide) is the independent judge of
-:class:`nerfart_plugin.evaluation.ImageNetJudge`.
+:class:`nerfart_plugin.objectives.evaluation.ImageNetJudge`.
 """
 
 from __future__ import annotations
@@ -46,12 +46,12 @@ from typing import Annotated, Any, ClassVar, Optional
 import torch
 from torch import Tensor, nn
 
-from nerfart_plugin.components import ComponentConfig
-from nerfart_plugin.config_types import Float, Int, Limits, Setting
+from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.prompts import content_words
-from nerfart_plugin.registry import register
+from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -35,7 +35,7 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
                    device: torch.device, channels: Sequence[str] = ("rgb",), source: Any = None,
                    labels: tuple[str, str] = ("source", "stylized"), progress: bool = True,
                    on_frame: Optional[Callable[[int, int], None]] = None) -> dict[str, list[np.ndarray]]:
-    """Render every camera of ``path`` (:class:`~nerfart_plugin.data.render_path.RenderPath`) without grad.
+    """Render every camera of ``path`` (:class:`~nerfart_plugin.cameras.path.RenderPath`) without grad.
 
     Args:
         renderer: the trained renderer (eval mode); source: the source renderer, for ``side``.
@@ -49,8 +49,8 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
     from tqdm.auto import tqdm
 
     from nerfart_plugin.data.rays import camera_batch
-    from nerfart_plugin.export.video import side_by_side, to_uint8
-    from nerfart_plugin.systems.base import to_device
+    from nerfart_plugin.utils.images import side_by_side, to_uint8
+    from nerfart_plugin.utils.device import to_device
 
     unknown = [c for c in channels if c not in CHANNELS]
     if unknown:

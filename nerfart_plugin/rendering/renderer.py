@@ -16,7 +16,7 @@ import torch.nn as nn
 from torch import Tensor
 
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.fields.base import Field
+from nerfart_plugin.fields.field import Field
 from nerfart_plugin.fields.occupancy import OccupancyGrid
 from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples, weighted_samples
 from nerfart_plugin.rendering.volume import block_weights, weights_from_alpha
@@ -28,7 +28,7 @@ class VolumeRenderer(nn.Module):
     """Render ray batches through a ``Field``.
 
     Args:
-        field: any :class:`~nerfart_plugin.fields.base.Field` (only ``query``, ``alpha``, ``regularizers``
+        field: any :class:`~nerfart_plugin.fields.field.Field` (only ``query``, ``alpha``, ``regularizers``
             and ``bound`` are used; the occupancy grid uses ``cell_occupancy``).
         num_samples: K sections per ray.
         background: optional direction-conditioned model ``c_bg(d)`` (e.g.

@@ -10,8 +10,9 @@ import torch
 
 from nerfart_plugin.fields import OccupancyGrid, build_background, build_field
 from nerfart_plugin.rendering import VolumeRenderer
-from nerfart_plugin.schema import RenderConfig, section
-from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.utils.device import to_device
+from nerfart_plugin.config.schema import RenderConfig, section
+from nerfart_plugin.data.setup import SceneSetup
 
 log = logging.getLogger(__name__)
 
@@ -80,10 +81,6 @@ def adam(groups: list[dict]) -> torch.optim.Adam:
     return torch.optim.Adam(groups, betas=(0.9, 0.99), eps=1e-15, fused=fused or None)
 
 
-def to_device(batch: dict[str, Any], device: torch.device) -> dict[str, Any]:
-    return {k: (v.to(device, non_blocking=True) if torch.is_tensor(v) else v) for k, v in batch.items()}
-
-
 def step_seed(seed: int, step: int) -> int:
     """A per-step seed: the randomness of step ``step`` depends only on (seed, step), so a resumed run
     draws exactly what an uninterrupted one would."""
@@ -106,7 +103,7 @@ class RenderSystem(L.LightningModule):
     """Base LightningModule holding a renderer built from config.
 
     Its checkpoints record the model they belong to (``checkpoint["nerfart"]``, see
-    :func:`nerfart_plugin.checkpoints.checkpoint_meta`), so that a checkpoint that does not
+    :func:`nerfart_plugin.systems.checkpoints.checkpoint_meta`), so that a checkpoint that does not
     fit a run is named with what differs. What a stage needs from a system after training is
     public here (:attr:`model_meta`, :attr:`occupied_fraction`, :meth:`render_view`), so
     nothing outside reaches into the renderer.
@@ -118,7 +115,7 @@ class RenderSystem(L.LightningModule):
 
     def __init__(self, backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderConfig | dict,
                  setup: SceneSetup) -> None:
-        from nerfart_plugin.checkpoints import checkpoint_meta
+        from nerfart_plugin.systems.checkpoints import checkpoint_meta
 
         super().__init__()
         self.setup_info = setup if isinstance(setup, SceneSetup) else SceneSetup(**setup)
@@ -128,7 +125,7 @@ class RenderSystem(L.LightningModule):
         self.model_meta: dict[str, Any] = checkpoint_meta(self.stage, backbone_cfg, encoding_cfg, self.setup_info)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        from nerfart_plugin.checkpoints import META_KEY
+        from nerfart_plugin.systems.checkpoints import META_KEY
 
         checkpoint[META_KEY] = dict(self.model_meta)
 

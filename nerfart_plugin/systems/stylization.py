@@ -45,11 +45,12 @@ from nerfart_plugin.guidance import NegativeSampler, random_patches
 from nerfart_plugin.guidance.patches import subject_box
 from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
                                                render_with_graph)
-from nerfart_plugin.schema import MAX_GRAD_SAMPLES, ExperimentConfig, RenderConfig, StylizeConfig, section
-from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed, to_device
+from nerfart_plugin.config.schema import MAX_GRAD_SAMPLES, ExperimentConfig, RenderConfig, StylizeConfig, section
+from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed
+from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.systems.callbacks import check_finite_grads
 from nerfart_plugin.systems.loss_terms import compute, regularizer_weights, weighted_sum, weights_of
-from nerfart_plugin.systems.scene_setup import SceneSetup
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.systems.stylization_losses import (STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, ImageInputs,
                                                        regularizer_term)
 
@@ -145,7 +146,7 @@ class StylizationSystem(RenderSystem):
 
     def _check_retained_graph_fits(self) -> None:
         """``stylize.backprop=retain`` keeps a view's whole graph: refuse views whose samples (rays x samples
-        per ray) exceed what one step with grad may hold (:data:`nerfart_plugin.schema.MAX_GRAD_SAMPLES`)."""
+        per ray) exceed what one step with grad may hold (:data:`nerfart_plugin.config.schema.MAX_GRAD_SAMPLES`)."""
         if self.cfg.backprop != "retain" or not self.views:
             return
         rays = max(int(v["rays_o"].shape[0]) for v in self.views)
@@ -320,9 +321,9 @@ class StylizationSystem(RenderSystem):
         every = self.cfg.render_every
         if self.out_dir is None or every <= 0 or not (step % every == 0 or step + 1 == self.total_steps):
             return
-        from nerfart_plugin.export.video import image_grid, save_image, to_uint8
+        from nerfart_plugin.utils.images import image_grid, save_image, to_uint8
 
-        from nerfart_plugin.loggers import log_images
+        from nerfart_plugin.systems.loggers import log_images
 
         pair = [to_uint8(src["img"][0].permute(1, 2, 0)), to_uint8(img.detach()[0].permute(1, 2, 0))]
         grid = image_grid(pair)

@@ -10,6 +10,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -111,3 +112,13 @@ def check_writable_dir(path: str | os.PathLike, key: str = "output_root", create
                           f"least {MIN_FREE_BYTES / 2**20:.0f} MiB for checkpoints, renders and meshes. Free some "
                           f"space or choose another {key}.")
     return folder
+
+
+def config_hash(obj: Any, n: int = 12) -> str:
+    """The first ``n`` hex digits of the SHA-256 of ``obj`` as sorted JSON (a run folder's key)."""
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:n]
+
+
+def slug(text: str, n: int = 40) -> str:
+    """``text`` as a folder-name part: runs of other characters than letters and digits -> ``_``."""
+    return re.sub(r"[^A-Za-z0-9]+", "_", text).strip("_")[:n] or "prompt"

@@ -27,7 +27,7 @@ def open_viewer(run: Union[str, Path, Any], host: str = "127.0.0.1", port: int =
     the running :class:`~nerfart_plugin.viewer.server.Viewer` (``.url``; ``.stop()`` to end it)."""
     from nerfart_plugin.api import Run, open_run
     from nerfart_plugin.viewer import panels
-    from nerfart_plugin.viewer.fields import RunField, sibling_runs
+    from nerfart_plugin.viewer.sources import RunField, sibling_runs
     from nerfart_plugin.viewer.path_editor import PathEditor
     from nerfart_plugin.viewer.server import Viewer
 

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from viser.transforms import SO3
 
-from nerfart_plugin.data.camera_path import CaptureCameras
-from nerfart_plugin.data.render_path import RenderPath
+from nerfart_plugin.cameras.capture import CaptureCameras
+from nerfart_plugin.cameras.path import RenderPath
 
 #: the field of view a camera may have (radians, vertical)
 FOV_RANGE = (math.radians(1.0), math.radians(170.0))

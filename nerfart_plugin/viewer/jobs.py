@@ -15,7 +15,7 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from nerfart_plugin.viewer.cameras import ViewCamera
-from nerfart_plugin.viewer.fields import ViewSettings
+from nerfart_plugin.viewer.sources import ViewSettings
 from nerfart_plugin.viewer.schedule import FrameSchedule, wait_for_share
 
 log = logging.getLogger(__name__)
@@ -25,7 +25,7 @@ class TabRenderer:
     """Renders ``field`` for one tab and hands each frame to ``show`` ([H,W,3] uint8).
 
     Args:
-        field: a :class:`~nerfart_plugin.viewer.fields.RunField` or ``LiveField``.
+        field: a :class:`~nerfart_plugin.viewer.sources.RunField` or ``LiveField``.
         settings: returns the panels' current :class:`ViewSettings`.
         schedule: the tab's :class:`FrameSchedule`.
         show: sends a frame to the tab (viser's background image).

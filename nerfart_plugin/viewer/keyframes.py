@@ -14,8 +14,8 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from nerfart_plugin.data.camera_path import CaptureCameras
-from nerfart_plugin.data.render_path import RenderPath, write_camera_path
+from nerfart_plugin.cameras.capture import CaptureCameras
+from nerfart_plugin.cameras.path import RenderPath, write_camera_path
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.viewer.cameras import ViewCamera, path_of
 

@@ -70,7 +70,7 @@ def readouts(metrics: dict[str, Any], step: int, paused: bool, stop: bool) -> st
 
 
 class LiveJudge:
-    """The independent judge (:class:`~nerfart_plugin.evaluation.ImageNetJudge`) on the frame a tab shows, during a
+    """The independent judge (:class:`~nerfart_plugin.objectives.evaluation.ImageNetJudge`) on the frame a tab shows, during a
     stylization: the same network and class as the run's final ``judge`` block, on the current field.
 
     Args:
@@ -82,7 +82,7 @@ class LiveJudge:
     EVERY_S = 5.0
 
     def __init__(self, prompt: str, render_share: float = 0.1) -> None:
-        from nerfart_plugin.evaluation import judge_for
+        from nerfart_plugin.objectives.evaluation import judge_for
 
         self.judge, self.target, self.skipped = judge_for(prompt)
         self.render_share = render_share
@@ -113,7 +113,7 @@ class LiveViewer(L.Callback):
     """Serves the viewer on the field a fit is training (see the module docstring).
 
     Args:
-        cameras: the capture's cameras (:class:`~nerfart_plugin.data.camera_path.CaptureCameras`).
+        cameras: the capture's cameras (:class:`~nerfart_plugin.cameras.capture.CaptureCameras`).
         host / port: where to serve; render_share: the share of wall time frames may take.
         chunk: rays per no-grad chunk of a frame; folder: the run folder (camera paths are saved under
             ``<folder>/render``); photos: the capture's photos as thumbnails for the frustums.
@@ -182,7 +182,7 @@ class LiveViewer(L.Callback):
     # ---- parts
     def start(self, system: Any) -> Any:
         from nerfart_plugin.viewer import panels
-        from nerfart_plugin.viewer.fields import LiveField
+        from nerfart_plugin.viewer.sources import LiveField
         from nerfart_plugin.viewer.path_editor import PathEditor
         from nerfart_plugin.viewer.server import Viewer
 

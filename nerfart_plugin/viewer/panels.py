@@ -15,9 +15,9 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from nerfart_plugin.blend import STRENGTH_RANGE, WEIGHT_RANGE
+from nerfart_plugin.results.blend import STRENGTH_RANGE, WEIGHT_RANGE
 from nerfart_plugin.viewer.cameras import capture_camera, to_viser
-from nerfart_plugin.viewer.fields import VIEW_CHANNELS, VIEW_MODES
+from nerfart_plugin.viewer.sources import VIEW_CHANNELS, VIEW_MODES
 
 log = logging.getLogger(__name__)
 

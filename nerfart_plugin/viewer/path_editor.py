@@ -108,7 +108,7 @@ class PathEditor:
 
     def render_video(self) -> dict:
         """Save the path, then render it to the folder ``stage=render`` would use, showing progress."""
-        from nerfart_plugin.data.render_path import read_camera_path
+        from nerfart_plugin.cameras.path import read_camera_path
 
         path_file = self.save_file()
         rp = read_camera_path(path_file, self.run.cameras)

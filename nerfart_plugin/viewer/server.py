@@ -18,7 +18,7 @@ import numpy as np
 
 from nerfart_plugin.data.normalize import look_at_centre
 from nerfart_plugin.viewer.cameras import ViewCamera, capture_camera, from_viser, scene_scale, to_viser
-from nerfart_plugin.viewer.fields import ViewSettings
+from nerfart_plugin.viewer.sources import ViewSettings
 from nerfart_plugin.viewer.jobs import TabRenderer
 from nerfart_plugin.viewer.schedule import FrameSchedule
 
@@ -31,7 +31,7 @@ JPEG_QUALITY = 90
 
 
 class Viewer:
-    """A running viewer of ``field`` (:mod:`nerfart_plugin.viewer.fields`).
+    """A running viewer of ``field`` (:mod:`nerfart_plugin.viewer.sources`).
 
     Args:
         field: what is rendered; host / port: where to serve (port 0: any free port).
@@ -79,7 +79,7 @@ class Viewer:
         return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.port}"
 
     def _front_index(self) -> int:
-        from nerfart_plugin.data.camera_path import front_camera
+        from nerfart_plugin.cameras.capture import front_camera
 
         return front_camera(self.cams.to_world(self.cams.c2w[:, :3, :4]))
 

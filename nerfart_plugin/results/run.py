@@ -1,0 +1,312 @@
+"""A finished run opened for rendering: :class:`Run` (render, paths, meshes, the strength dial), :func:`mix`
+and :func:`open_run` (the public face is :mod:`nerfart_plugin.api`)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from nerfart_plugin.systems.checkpoints import META_KEY, load_checkpoint, prefixed_state
+from nerfart_plugin.cameras.capture import CaptureCameras, scale_intrinsics
+from nerfart_plugin.cameras.path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
+from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.data.setup import SceneSetup
+
+log = logging.getLogger("nerfart_plugin")
+
+__all__ = ["Run", "open_run", "mix"]
+
+
+@dataclass
+class Run:
+    """A finished run folder, ready to render.
+
+    Attributes:
+        folder: the run folder; checkpoint: the checkpoint read.
+        kind: "reconstruction" or "stylization".
+        config: its typed config; metrics: its ``metrics.json``.
+        renderer: the trained renderer (eval mode, on ``device``).
+        cameras: the capture's cameras (normalized frame; from ``cameras.json``, else from the data).
+        stamp: the file suffix of a run whose guidance was not a real CLIP (``_VERIFY-imagenet``), else "".
+        weights: the blend this Run renders (:mod:`nerfart_plugin.results.blend`): ``(1.0,)`` the run as trained,
+            ``(s,)`` the strength dial, one weight per run for a mix; mixed: the folders of a mix's runs.
+    """
+
+    folder: Path
+    checkpoint: Path
+    kind: str
+    config: RunConfig
+    metrics: dict
+    renderer: Any
+    cameras: CaptureCameras
+    device: torch.device
+    stamp: str = ""
+    weights: tuple[float, ...] = (1.0,)
+    mixed: tuple[str, ...] = ()
+    _source: Optional["Run"] = field(default=None, repr=False)
+
+    # ------------------------------------------------------------------ what it is
+    @property
+    def resolution(self) -> int:
+        """The long side (pixels) the run was trained and evaluated at: a stylization's resolution, else the
+        images'."""
+        native = max(self.cameras.height, self.cameras.width)
+        if self.kind == "stylization" and self.config.stylize.resolution != "auto":
+            return int(self.config.stylize.resolution)
+        return native
+
+    @property
+    def source(self) -> "Run":
+        """The reconstruction a stylization started from (its ``final.ckpt``, as the run recorded it)."""
+        if self.kind != "stylization":
+            raise NerfArtError(f"{self.folder} is a reconstruction: it has no source run.")
+        if self._source is None:
+            ckpt = self.metrics.get("source_checkpoint") or self.config.source_checkpoint
+            if not ckpt or not Path(ckpt).is_file():
+                raise NerfArtError(f"{self.folder}: its source reconstruction ({ckpt or 'not recorded'}) is not on this "
+                                   "machine; copy that reconstruction folder back, or render without side.")
+            self._source = open_run(Path(ckpt).parent, Path(ckpt).name, device=str(self.device))
+        return self._source
+
+    @property
+    def tag(self) -> str:
+        """The part of output names that tells blends apart: "" as trained, ``-s0.50``, ``-mix0.50_0.50-<hash>``."""
+        from nerfart_plugin.results.blend import blend_tag
+
+        return blend_tag(self.weights, self.mixed)
+
+    def with_strength(self, strength: float) -> "Run":
+        """This stylization at ``strength`` (0: the source, 1: as trained, up to 2: past it), without retraining
+        (:mod:`nerfart_plugin.results.blend`); a Run that renders, meshes and writes like any other."""
+        from nerfart_plugin.results.blend import check_strength
+
+        if self.kind != "stylization" or self.weights != (1.0,):
+            raise NerfArtError(f"{self.folder}: with_strength needs a stylization as trained, not a "
+                               f"{'blend' if self.kind == 'stylization' else 'reconstruction'}.")
+        return mix([self], [check_strength(strength)])
+
+    def scene(self):
+        """The capture again (:class:`~nerfart_plugin.data.scene.Scene`: photos, masks, cameras), loaded
+        from the run's ``data`` settings (the data must be where the run found it)."""
+        from nerfart_plugin.run.factories import build_scene
+
+        return build_scene(self.config).scene
+
+    # ------------------------------------------------------------------ cameras
+    def camera_path(self, path: Union[str, RenderPath] = "orbit", frames: int = 120, resolution: Optional[int] = None,
+                    path_frame: str = "world") -> RenderPath:
+        """The cameras of ``path`` (orbit | spiral | training | a camera_path.json, see
+        :func:`~nerfart_plugin.cameras.path.resolve_path`) at ``resolution`` (long side; None: the run's)."""
+        if isinstance(path, RenderPath):
+            return path
+        file_size = resolution is None and path not in ("orbit", "spiral", "training")
+        return resolve_path(self.cameras, path, frames, None if file_size else (resolution or self.resolution), path_frame)
+
+    def camera(self, camera: Union[int, np.ndarray, torch.Tensor], resolution: Optional[int] = None,
+               frame: str = "world", K: Optional[np.ndarray] = None) -> RenderPath:
+        """One camera: a view index of the capture, or a camera-to-world matrix [3,4] / [4,4] (OpenCV axes)
+        in ``frame`` ("world": the capture's, as the exported meshes; "normalized") with the intrinsics ``K``
+        [3,3] at the capture's image size (default: training view 0's)."""
+        H, W = frame_size(self.cameras, resolution or self.resolution)
+        if isinstance(camera, (int, np.integer)):
+            i = int(camera)
+            if not 0 <= i < len(self.cameras.c2w):
+                raise NerfArtError(f"camera {i}: the capture has views 0..{len(self.cameras.c2w) - 1}.")
+            c2w, Ks = self.cameras.c2w[i:i + 1], scaled_K(self.cameras, [i], H, W)
+        else:
+            m = np.asarray(camera.detach().cpu() if torch.is_tensor(camera) else camera, dtype=np.float64)
+            if m.shape not in ((3, 4), (4, 4)):
+                raise NerfArtError(f"camera: expected a [3,4] or [4,4] camera-to-world matrix, got shape {m.shape}.")
+            c2w = m[None, :3, :4]
+            c2w = self.cameras.from_world(c2w) if frame == "world" else c2w
+            ref = self.cameras.train_ids[:1] or [0]
+            Ks = scaled_K(self.cameras, ref, H, W)
+            if K is not None:
+                Kt = torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32)
+                Ks = scale_intrinsics(Kt, W / self.cameras.width, H / self.cameras.height)[None]
+        return RenderPath("camera", torch.as_tensor(c2w, dtype=torch.float32), Ks, H, W)
+
+    # ------------------------------------------------------------------ rendering
+    def render(self, camera: Union[int, np.ndarray, torch.Tensor], resolution: Optional[int] = None,
+               channels: Sequence[str] = ("rgb",), frame: str = "world") -> dict[str, np.ndarray]:
+        """One view (see :meth:`camera`) -> channel -> [H,W,3] uint8 (channels of
+        :mod:`nerfart_plugin.rendering.frames`)."""
+        return {k: v[0] for k, v in self.render_path(self.camera(camera, resolution, frame), channels=channels,
+                                                     progress=False).items()}
+
+    def render_path(self, path: Union[str, RenderPath] = "orbit", frames: int = 120, resolution: Optional[int] = None,
+                    channels: Sequence[str] = ("rgb",), path_frame: str = "world",
+                    progress: bool = True, on_frame: Optional[Callable[[int, int], None]] = None
+                    ) -> dict[str, list[np.ndarray]]:
+        """Every camera of ``path`` (:meth:`camera_path`) -> channel -> list of [H,W,3] uint8 frames
+        (``on_frame(done, total)`` after each camera)."""
+        from nerfart_plugin.rendering.frames import render_cameras
+
+        rp = self.camera_path(path, frames, resolution, path_frame)
+        if "side" in channels and self.kind != "stylization":
+            raise ConfigError(f"render.channels=side shows source | stylized, but {self.folder} is a reconstruction: "
+                              "render a stylization run, or drop side.")
+        source = self.source.renderer if "side" in channels else None
+        label = "stylized" + (f" ({self.stamp.strip('_')})" if self.stamp else "") + self.tag.replace("-", " ")
+        cams = self.cameras
+        return render_cameras(self.renderer, rp, ndc=cams.ndc, near=float(cams.near.min()), far=float(cams.far.max()),
+                              chunk=self.config.render.chunk, device=self.device, channels=channels, source=source,
+                              labels=("source", label), progress=progress, on_frame=on_frame)
+
+    def write_render(self, out_dir: Union[str, Path], path: Union[str, RenderPath] = "orbit", frames: int = 120,
+                     resolution: Optional[int] = None, channels: Sequence[str] = ("rgb",), fps: Optional[int] = None,
+                     png: bool = False, path_frame: str = "world",
+                     on_frame: Optional[Callable[[int, int], None]] = None) -> dict[str, Any]:
+        """Render ``path`` and write ``<out_dir>/<channel><stamp>.mp4`` per channel (and, ``png``, the frames
+        as ``<channel>/00000.png`` ...) plus ``camera_path.json`` (nerfstudio format, world frame) to render the
+        same path again or edit it. Returns what was written."""
+        from nerfart_plugin.utils.images import save_image
+        from nerfart_plugin.export.video import write_video
+
+        out = Path(out_dir)
+        rp = self.camera_path(path, frames, resolution, path_frame)
+        fps = int(fps or rp.fps or 24)
+        rendered = self.render_path(rp, channels=channels, on_frame=on_frame)
+        files: dict[str, Any] = {"camera_path": str(write_camera_path(rp, self.cameras, out / "camera_path.json", fps))}
+        for channel, images in rendered.items():
+            name = f"{channel}{self.tag}{self.stamp}"
+            files[channel] = str(write_video(images, out / f"{name}.mp4", fps=fps))
+            if png:
+                for i, img in enumerate(images):
+                    save_image(img, out / name / f"{i:05d}.png")
+        log.info("rendered %d frames of %s (%dx%d) -> %s", len(rp), rp.name, rp.width, rp.height, out)
+        return {"dir": str(out), "frames": len(rp), "width": rp.width, "height": rp.height, "fps": fps, "files": files}
+
+    def render_folder(self, path: RenderPath) -> Path:
+        """Where ``stage=render`` writes ``path``: ``<run>/render/<path>-<F>f-<W>x<H><blend tag>``."""
+        from nerfart_plugin.utils.io import slug
+
+        return self.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}{self.tag}"
+
+    # ------------------------------------------------------------------ geometry
+    def mesh(self, resolution: int = 128, frame: str = "world", level: Optional[float] = None):
+        """The field's surface by marching cubes (``trimesh.Trimesh`` with vertex colours) in ``frame``
+        ("world": the capture's, as the pipeline's exports; "normalized": the training frame)."""
+        from nerfart_plugin.export import MeshExtractor
+        from nerfart_plugin.export.world_frame import mesh_in_frame
+
+        ec = self.config.export
+        field = self.renderer.field
+        ex = MeshExtractor(resolution=int(resolution), bound=float(field.bound), chunk=ec.chunk,
+                           level=ec.level if level is None else level, remove_floaters=ec.remove_floaters)
+        return mesh_in_frame(ex.extract(field), frame, self.cameras)
+
+
+def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
+    """Stylizations of one source combined: ``θ_src + Σ w_i (θ_i − θ_src)`` (:mod:`nerfart_plugin.results.blend`;
+    each weight in ``blend.WEIGHT_RANGE``). Returns a Run like the first one (its folder, settings and
+    cameras) rendering the blend. Runs whose source checkpoints differ in content are refused."""
+    from dataclasses import replace
+
+    from nerfart_plugin.results.blend import blended_renderer, check_weights
+
+    weights = check_weights(weights, len(runs))
+    for r in runs:
+        if r.kind != "stylization" or r.weights != (1.0,):
+            raise ConfigError(f"mix: {r.folder} is not a stylization as trained; mix stylizations of one source.")
+    source = runs[0].source
+    content = _content(source.checkpoint) if len(runs) > 1 else ""  # one run (the strength dial): its own source
+    for r in runs[1:]:
+        if _content(r.source.checkpoint) != content:
+            raise ConfigError(f"mix: the runs stylize different sources: {source.checkpoint} and "
+                              f"{r.source.checkpoint} differ in content; mix stylizations of the same reconstruction.")
+    renderer = blended_renderer(runs[0].renderer, source.renderer, [r.renderer for r in runs], weights)
+    return replace(runs[0], renderer=renderer, weights=tuple(weights), mixed=tuple(str(r.folder) for r in runs),
+                   _source=source)
+
+
+def _content(path: Path) -> str:
+    from nerfart_plugin.utils.io import hash_files
+
+    return hash_files([Path(path)])
+
+
+@dataclass
+class _RunFolder:
+    """A run folder read back: its config, metrics and renderer (on the CPU, eval mode).
+
+    Attributes:
+        path: the run folder; checkpoint: the file the renderer was read from.
+        cfg: its typed config; metrics: its ``metrics.json`` ({} if none).
+        setup: the scene setup it was trained with (from the checkpoint's record).
+        renderer: the trained renderer.
+    """
+
+    path: Path
+    checkpoint: Path
+    cfg: RunConfig
+    metrics: dict
+    setup: SceneSetup
+    renderer: Any
+
+
+def _read_run_folder(run_dir: Path | str, checkpoint: str = "final.ckpt") -> _RunFolder:
+    """Read a reconstruction or stylization folder: ``config.yaml``, ``metrics.json`` and the renderer of
+    ``checkpoint`` (``last.ckpt`` for an unfinished run), rebuilt from the checkpoint's model record."""
+    from omegaconf import OmegaConf
+
+    from nerfart_plugin.run.factories import build_renderer, typed
+
+    path = Path(run_dir)
+    ckpt_path = path / checkpoint
+    if not (path / "config.yaml").is_file() or not ckpt_path.is_file():
+        raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
+                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
+    cfg, _ = typed(OmegaConf.load(path / "config.yaml"))
+    ckpt = load_checkpoint(ckpt_path, fix=f"If {ckpt_path.name} was damaged, run the command that made this run "
+                                          "again: it sets the damaged file aside and trains again from the run's "
+                                          "last.ckpt (nothing else in the folder is touched).")
+    meta = ckpt.get(META_KEY)
+    if not isinstance(meta, dict) or "setup" not in meta:
+        raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "
+                           "with factories.build_scene(cfg) and factories.load_renderer_state(checkpoint, scene).")
+    setup = SceneSetup(**meta["setup"])
+    renderer = build_renderer(cfg, setup)
+    renderer.load_state_dict(prefixed_state(ckpt, "renderer."))
+    metrics_path = path / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    return _RunFolder(path, ckpt_path, cfg, metrics, setup, renderer.eval())
+
+
+def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: str = "auto") -> Run:
+    """Open a reconstruction or stylization folder (or pass a checkpoint file in one) for rendering.
+
+    Args:
+        folder: ``outputs/reconstructions/<run>`` or ``outputs/stylizations/<run>`` (or a ``.ckpt`` in it).
+        checkpoint: the checkpoint to read (``last.ckpt`` for an unfinished run).
+        device: auto (CUDA, then MPS, then CPU) | cpu | cuda | cuda:N | mps.
+    """
+    from nerfart_plugin.run.factories import build_scene
+    from nerfart_plugin.utils.device import pick_device
+
+    folder = Path(folder).expanduser()
+    if folder.suffix == ".ckpt":
+        folder, checkpoint = folder.parent, folder.name
+    loaded = _read_run_folder(folder, checkpoint)
+    cfg = loaded.cfg
+    kind = "stylization" if (loaded.metrics.get("prompt") is not None or folder.parent.name == "stylizations") \
+        else "reconstruction"
+    cams_file = folder / "cameras.json"
+    if cams_file.is_file():
+        cameras = CaptureCameras.from_json(json.loads(cams_file.read_text()))
+    else:  # a run written before cameras.json: the cameras from the data
+        log.info("%s has no cameras.json: reading the cameras from its data (%s)", folder, cfg.data.get("path"))
+        cameras = build_scene(cfg).cameras
+    renderer = loaded.renderer
+    if kind == "stylization":  # rendered as the stylization was evaluated
+        renderer.reduce_samples(cfg.stylize.num_samples)
+    dev = pick_device(device)
+    return Run(folder, loaded.checkpoint, kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
+               stamp=loaded.metrics.get("stamp") or "")

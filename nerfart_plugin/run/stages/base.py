@@ -1,0 +1,144 @@
+"""The skeleton both training stages share (:class:`TrainingStage`): reuse a finished run, else lock the folder,
+prepare it, build the system, fit (resume, atomic checkpoints, Ctrl-C, OOM), write the outputs and
+``metrics.json`` on rank 0, then ``final.ckpt``; and what every stage returns (:class:`StageResult`)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Optional
+
+
+from nerfart_plugin.config.auto import component_choices, recorded
+from nerfart_plugin.run.factories import (SceneContext)
+from nerfart_plugin.run.fit import FitResult, publish_final, stage_final
+from nerfart_plugin.run.folders import RunFolder
+from nerfart_plugin.utils.io import atomic_write_json
+
+log = logging.getLogger("nerfart_plugin")
+
+
+
+
+@dataclass
+class StageResult:
+    """What a stage leaves: its checkpoint and the summary that goes into the run's ``result.json``."""
+
+    checkpoint: Path
+    summary: dict[str, Any] = field(default_factory=dict)
+
+
+class StageClock:
+    """Wall seconds of the parts of a stage (fit, evaluation, video, meshes), kept in ``metrics.json`` as
+    ``stage_seconds`` so that a user (and the main-job benchmark) sees where the time went."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def part(self, name: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)
+
+
+class TrainingStage:
+    """The skeleton both training stages share; subclasses say what is trained and what is written."""
+
+    folder: RunFolder
+
+    def __init__(self, scene: SceneContext) -> None:
+        self.scene = scene
+        self.clock = StageClock()
+
+    def run(self) -> StageResult:
+        """Reuse the finished run, or compute it holding the folder's lock."""
+        return self.folder.reuse_or_run(self.scene.cfg.lock_timeout, self.compute, self.reuse)
+
+    def reuse(self) -> StageResult:
+        log.info(self.reused_message, self.folder.path)
+        return StageResult(self.folder.final, {"dir": str(self.folder.path)})
+
+    def compute(self) -> StageResult:
+        self.check_inputs()  # a wrong input stops before the run folder exists
+        self.folder.prepare(self.scene.cfg.resume, self.scene.plain)
+        system = self.build_system()
+        fit = self.fit(system)
+        staged = stage_final(fit, self.folder)  # every rank (a collective under DDP)
+        if staged is None:  # DDP: evaluation and outputs on rank 0 only
+            return StageResult(self.folder.final)
+        self.clock.seconds["fit"] = round(fit.seconds, 3)
+        metrics = self.outputs(system, fit)
+        metrics["auto"] = recorded(self.scene.cfg, self.auto_choices(system, fit))
+        metrics["stage_seconds"] = self.clock.seconds
+        write_cameras(self.scene, self.folder.path)
+        atomic_write_json(self.folder.path / "metrics.json", metrics)
+        publish_final(staged, self.folder)
+        return StageResult(self.folder.final, {"dir": str(self.folder.path), **self.summary(metrics)})
+
+    # ---- what a stage says
+    reused_message = "reusing %s"
+
+    def check_inputs(self) -> None:
+        """Read and check what the stage starts from (nothing by default)."""
+
+    def live_callbacks(self) -> list[Any]:
+        """The live viewer on the field being trained, when ``viewer.live`` (:mod:`nerfart_plugin.viewer.live`)."""
+        vc = self.scene.cfg.viewer
+        if not vc.live:
+            return []
+        from nerfart_plugin.cameras.capture import CaptureCameras
+        from nerfart_plugin.viewer.live import LiveViewer
+
+        from nerfart_plugin.viewer.panels import thumbnails
+
+        scene = self.scene.scene
+        cams = CaptureCameras.from_scene(scene, self.scene.ndc)
+        return [LiveViewer(cams, host=vc.host, port=vc.port, render_share=vc.render_share,
+                           chunk=self.scene.cfg.render.chunk, folder=self.folder.path, title=self.folder.what,
+                           photos=thumbnails(scene.images.numpy()))]
+
+    def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        """What the run's ``auto`` settings became (:mod:`nerfart_plugin.config.auto`): the scene's, the data's, the
+        compute's and the components' (the field, and for a stylization its guide and perceptual network)."""
+        scene = self.scene.scene
+        return {**self.scene.setup.auto_choices(), "data.resolution": max(scene.height, scene.width),
+                "device": self.scene.device, "trainer.strategy": type(fit.trainer.strategy).__name__,
+                **component_choices(self.scene.device, [system.field, getattr(system, "guidance", None),
+                                                        getattr(system, "perceptual", None)])}
+
+    def build_system(self) -> Any:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def fit(self, system: Any) -> FitResult:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def write_cameras(scene: SceneContext, folder: Path) -> None:
+    """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer and
+    ``stage=render`` (:meth:`~nerfart_plugin.cameras.capture.CaptureCameras.from_json`)."""
+    from nerfart_plugin.cameras.capture import viewer_cameras
+
+    atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame, scene.ndc))
+
+
+def blended_run(cfg: Any, folder: Optional[Path]) -> Any:
+    """The :class:`~nerfart_plugin.api.Run` that ``stage=render`` / ``stage=export`` work on: ``mix.runs`` at
+    ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``."""
+    from nerfart_plugin.api import mix, open_run
+
+    if cfg.mix.runs:
+        return mix([open_run(Path(r).expanduser(), device=cfg.device) for r in cfg.mix.runs], cfg.mix.weights)
+    run = open_run(folder, device=cfg.device)
+    return run if cfg.strength == 1.0 else run.with_strength(cfg.strength)

@@ -1,0 +1,205 @@
+"""``stage=stylize``: the text-driven fine-tuning into ``stylizations/<prompt>-<backbone>-<key><stamp>/``
+(``final.ckpt``, ``heldout/``, ``video<stamp>.mp4``, ``mesh/``, ``metrics.json``)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any, Optional
+
+import numpy as np
+import torch
+
+from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
+from nerfart_plugin.run.factories import (SceneContext, Style, build_stylization_system,
+    load_renderer_state, style_choices, stylize_settings)
+from nerfart_plugin.run.fit import FitResult, fit_stage
+from nerfart_plugin.run.folders import RunFolder
+from nerfart_plugin.utils.io import config_hash, slug
+from nerfart_plugin.config.schema import result_settings
+from nerfart_plugin.utils.io import atomic_path, hash_files
+
+from nerfart_plugin.run.stages.base import TrainingStage
+from nerfart_plugin.run.stages.reconstruct import ReconstructStage, scene_settings
+
+log = logging.getLogger("nerfart_plugin")
+
+
+class StylizeStage(TrainingStage):
+    """Stage 2: stylize the reconstruction ``source`` toward the prompt of ``style``
+    (:class:`~nerfart_plugin.systems.StylizationSystem`).
+
+    Args:
+        source: the reconstruction's ``final.ckpt``; source_key: what identifies it in the key (the
+            reconstruction key, or the resolved path of an explicit ``source_checkpoint``).
+    """
+
+    reused_message = "this stylization is already complete: %s (not recomputed, not overwritten)"
+
+    def __init__(self, scene: SceneContext, style: Style, source: Path, source_key: str) -> None:
+        super().__init__(scene)
+        c = scene.cfg
+        self.style, self.source = style, source
+        self.settings = stylize_settings(scene, style)
+        self.key = config_hash({"recon": source_key, "prompt": style.prompt, "source_prompt": style.source_prompt,
+                                "guidance": c.guidance, "experiment": result_settings(c.experiment),
+                                # as keyed before the threshold was resolved here: existing runs keep their keys
+                                "stylize": result_settings(stylize_settings(scene)),
+                                "trainer": result_settings(c.trainer),
+                                "seed": c.seed})
+        name = f"{slug(style.raw_prompt)}-{c.backbone['name']}-{self.key}{style.stamp}"
+        self.folder = RunFolder(scene.root / "stylizations" / name, "stylization")
+        self.source_state: Optional[dict] = None
+        self.heldout_views: Optional[tuple[list[int], torch.Tensor, torch.Tensor]] = None  # (ids, source, stylized)
+
+    def check_inputs(self) -> None:
+        """The source renderer's tensors, read safely and checked to fit this run's model."""
+        self.source_state = load_renderer_state(self.source, self.scene)
+
+    def build_system(self) -> Any:
+        return build_stylization_system(self.scene, self.source_state, self.style, out_dir=self.folder.path)
+
+    def fit(self, system: Any) -> FitResult:
+        return fit_stage(system, self.folder, steps=self.settings.steps, device=self.scene.device,
+                         trainer_cfg=self.scene.cfg.trainer, checkpoint_every=self.settings.checkpoint_every,
+                         callbacks=self.live_callbacks(), logger_cfg=self.scene.cfg.logger, limit_val_batches=0)
+
+    def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        """Metrics on held-out views, the side-by-side video, meshes and their comparison."""
+        c, st = self.scene.cfg, self.style
+        with self.clock.part("evaluation"):
+            metrics = self.heldout_metrics(system)
+        with self.clock.part("video"):
+            metrics.update(self.video(system))
+        if c.export.enabled:
+            with self.clock.part("meshes"):
+                metrics.update(self.compare_meshes(system))
+        metrics.update({"prompt": st.raw_prompt, "prompt_used": st.prompt, "source_prompt": st.source_prompt,
+                        "guidance": c.guidance["name"], "guidance_is_real": st.real, "stamp": st.stamp or None,
+                        "experiment": c.experiment.model_dump(mode="json"), "steps": fit.steps,
+                        "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
+                        "source_checkpoint": str(Path(self.source).resolve()),
+                        **system.negatives_report()})
+        from nerfart_plugin.objectives.evaluation import lost_subject
+
+        warnings = [w for w in (st.warning, lost_subject(metrics.get("silhouette_iou"))) if w]
+        if warnings:
+            metrics["WARNING"] = "; ".join(warnings)
+        log.info("stylization done -> %s", self.folder.path)
+        return metrics
+
+    def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
+        return {k: v for k, v in metrics.items() if k.startswith(("clip_", "view_", "mesh_"))}
+
+    def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        return {**super().auto_choices(system, fit), **style_choices(self.style, self.settings)}
+
+    @torch.no_grad()
+    def heldout_metrics(self, system: Any) -> dict[str, Any]:
+        """CLIP scores, colour means, edge similarity, silhouette IoU, the judge and the off-surface weight
+        on the held-out views (``heldout/`` images saved)."""
+        from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views,
+            judge_prompt, off_surface_share, silhouette_iou)
+
+        system.to(self.scene.device).eval()
+        scene = self.scene.scene
+        ids = scene.val_ids or scene.train_ids[:4]
+        views = self.scene.views(ids, self.settings.resolution)
+        sty_out = [system.render_batch(v) for v in views]
+        src_out = [system.render_batch(v, source=True) for v in views]
+        sty = torch.stack([o["rgb"].permute(2, 0, 1) for o in sty_out]).clamp(0, 1)
+        src = torch.stack([o["rgb"].permute(2, 0, 1) for o in src_out]).clamp(0, 1)
+        metrics: dict[str, Any] = clip_scores(system.guidance, sty, src, system.tgt_txt, system.src_txt)
+        metrics["mean_rgb"] = [float(x) for x in sty.mean((0, 2, 3))]
+        metrics["mean_rgb_source"] = [float(x) for x in src.mean((0, 2, 3))]
+        metrics["edge_similarity"] = edge_similarity(sty, src)
+        metrics["silhouette_iou"] = silhouette_iou(torch.stack([o["opacity"][..., 0] for o in src_out]),
+                                                   torch.stack([o["opacity"][..., 0] for o in sty_out]))
+        self.save_heldout(ids, src, sty)
+        self.heldout_views = (ids, src, sty)  # what a preview shows, without reading the PNGs back
+        metrics["judge"] = judge_prompt(self.style.raw_prompt, src, sty, ids)
+        metrics["evaluated_on"] = evaluation_views(scene)
+        from nerfart_plugin.utils.device import to_device
+
+        dev = self.scene.device
+        metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.renderer, to_device(v, dev))
+                                                       for v in views]))
+        metrics["off_surface_weight_source"] = float(np.mean([off_surface_share(system.source, to_device(v, dev))
+                                                              for v in views]))
+        return metrics
+
+    def save_heldout(self, ids: list[int], src: torch.Tensor, sty: torch.Tensor) -> None:
+        """``heldout/source_<view>.png`` and ``heldout/stylized_<view>.png`` at the stylization resolution."""
+        from PIL import Image
+
+        from nerfart_plugin.utils.images import to_uint8
+
+        for i, a, b in zip(ids, src, sty):
+            for name, img in (("source", a), ("stylized", b)):
+                with atomic_path(self.folder.path / "heldout" / f"{name}_{int(i):04d}.png") as tmp:
+                    Image.fromarray(to_uint8(img.permute(1, 2, 0))).save(tmp, format="PNG")
+
+    @torch.no_grad()
+    def video(self, system: Any) -> dict[str, Any]:
+        """The source | stylized orbit video (``stylize.video_frames`` frames at the stylization size) and the
+        view-consistency error along it; nothing with ``stylize.video_frames=0``."""
+        from nerfart_plugin.cameras.orbits import orbit_path
+        from nerfart_plugin.data.rays import camera_batch
+        from nerfart_plugin.objectives.evaluation import view_consistency
+        from nerfart_plugin.utils.images import side_by_side, to_uint8
+        from nerfart_plugin.export.video import write_video
+
+        sc, stamp, scene = self.settings, self.style.stamp, self.scene.scene
+        metrics: dict[str, Any] = {"view_consistency_error": None}
+        if sc.video_frames <= 0:
+            return metrics
+        ref = self.scene.views(scene.train_ids[:1] or [0], sc.resolution)[0]
+        c2ws = orbit_path(scene, sc.video_frames)
+        K = scene.K[0].clone()
+        K[0] *= ref["W"] / scene.width
+        K[1] *= ref["H"] / scene.height
+        near, far = float(scene.near.min()), float(scene.far.max())
+        frames, sty_frames, src_frames = [], [], []
+        label = "stylized" + (f" ({stamp.strip('_')})" if stamp else "")
+        for c2w in c2ws:
+            b = camera_batch(K, c2w, ref["H"], ref["W"], near, far, self.scene.ndc)
+            a, s = system.render_batch(b, source=True), system.render_batch(b)
+            src_frames.append(a)
+            sty_frames.append(s)
+            frames.append(side_by_side(to_uint8(a["rgb"]), to_uint8(s["rgb"]), labels=("source", label)))
+        write_video(frames, self.folder.path / f"video{stamp}.mp4", fps=sc.video_fps)
+        if not self.scene.ndc:  # NDC: depth is NDC t, warping not implemented: view_consistency_error stays None
+            Kd = K.to(self.scene.device)
+            metrics["view_consistency_error"] = view_consistency(sty_frames, Kd, c2ws)
+            metrics["view_consistency_error_source"] = view_consistency(src_frames, Kd, c2ws)
+        return metrics
+
+    def compare_meshes(self, system: Any) -> dict[str, Any]:
+        """``mesh/source``, ``mesh/stylized<stamp>``, ``mesh/displacement<stamp>.ply`` and the geometry change."""
+        from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
+
+        stamp, mesh_dir = self.style.stamp, self.folder.path / "mesh"
+        src = export_source_mesh(self.scene, system.source.field, mesh_dir / "source",
+                                 shared=Path(self.source).parent / "mesh" / "source")
+        sty = export_mesh(self.scene, system.field, mesh_dir / f"stylized{stamp}")
+        if src is None or sty is None:
+            return {}
+        sdf = system.source.field.signed_distance()
+        m = compare_meshes(sty, src, n_samples=20_000, source_sdf=sdf)
+        write_in_frame(self.scene, displacement_mesh(sty, vertex_distances(sty, src, source_sdf=sdf)),
+                       mesh_dir / f"displacement{stamp}.ply")
+        return {f"mesh_{k}": v for k, v in m.items()}
+
+
+def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -> tuple[Path, str]:
+    """The checkpoint a stylization starts from and what identifies it in the stylization key: the cached
+    reconstruction of these settings (its key covers the scene, data and render settings), or an explicit
+    ``source_checkpoint``: its content, with the scene's content and the data and render settings, which
+    the stylization uses too (a file that does not exist keeps its path; reading it fails clearly later)."""
+    src = scene.cfg.source_checkpoint
+    if src:
+        path = Path(src)
+        content = hash_files([path]) if path.is_file() else str(path.resolve())
+        return path, config_hash({"checkpoint": content, **scene_settings(scene)})
+    assert recon is not None
+    return recon.folder.final, recon.key
