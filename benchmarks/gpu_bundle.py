@@ -211,8 +211,8 @@ run(tiny_cfg(Path({str(out / 'tiny')!r}), DEFAULT_SCENE, "guidance=toy", "prompt
              "stylize.steps=2"))
 from nerfart_plugin.guidance import build_guidance
 from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
-build_guidance({{"name": "clip", "allow_random_weights": True, "clip": {{"pretrained": None,
-                "model_overrides": TINY_TEST_OVERRIDES}}}})  # tests/test_cuda.py's CLIP test
+build_guidance({{"name": "clip", "allow_random_weights": True, "pretrained": None,
+                "model_overrides": TINY_TEST_OVERRIDES}})  # tests/test_cuda.py's CLIP test
 from benchmarks.paper_resolution import paper_job
 paper_job(Path({str(data_root)!r}), Path({str(out / 'job')!r}), "cpu", True)
 """

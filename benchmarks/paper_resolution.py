@@ -49,7 +49,7 @@ SCENES: dict[str, list[str]] = {
 }
 GUIDES: dict[str, list[str]] = {
     "clip (random weights)": ["guidance=clip", "guidance.allow_random_weights=true", "guidance.allow_download=false",
-                              "guidance.clip.pretrained=null", "guidance.vgg.weights=null"],
+                              "guidance.pretrained=null", "guidance.perceptual.weights=null"],
     "imagenet": ["guidance=imagenet"],
 }
 #: Lightning mixed precisions part 1 also times, with this guide (the method's own networks)
@@ -176,7 +176,7 @@ def source_field_and_image_gradient(ctx: Any, view: dict[str, Any], samples: int
     """The source field's renderer at ``samples`` per ray, and a fixed random image gradient [R,3] for ``view``."""
     import torch
 
-    from nerfart_plugin.run.factories import build_renderer
+    from nerfart_plugin.systems.base import build_renderer
 
     r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
     r.load_state_dict(ctx.source_state)
@@ -420,7 +420,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
              f"{f(r.get('perceptual_auto'))} ({r.get('perceptual_dtype', '–')})", f(r.get("perceptual_fp32"))]
             for r in raw.get("steps", []) if "floor_fp32" in r]
     if prec:
-        body += ["", "Arithmetic of the frozen networks on this CPU (`guidance.clip.precision`, `guidance.vgg.precision`; "
+        body += ["", "Arithmetic of the frozen networks on this CPU (`guidance.precision`, `guidance.perceptual.precision`; "
                  "`auto` in brackets): the floor's passes and the perceptual network's forward+backward at the view's "
                  "size, same run. Where float32 is faster, set the precision to fp32. The CLIP floor through open_clip "
                  "as loaded (`auto` precision) is the guidance as it ran before 2026-12-05: float32 weights cast by "

@@ -67,7 +67,7 @@ def measure(scene: Any, state: dict, samples: list[int], views: int, reps: int) 
     """Seconds per view, PSNR vs the 256-sample reference and evaluations per ray, per (mode, K)."""
     import torch
 
-    from nerfart_plugin.run.factories import build_renderer
+    from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.objectives.losses import psnr
 
     r = build_renderer(scene.cfg, scene.setup)
@@ -116,8 +116,8 @@ def measure(scene: Any, state: dict, samples: list[int], views: int, reps: int) 
                          REFERENCE_SAMPLES, per_ray)
     occupied = r.occupied_fraction
     return {"rows": rows, "height": sc.height, "width": sc.width, "views": len(vs), "chunk": chunk,
-            "stop_transmittance": stop, "occupied": occupied, "backbone": scene.cfg.backbone["name"],
-            "encoding": scene.cfg.encoding["name"]}
+            "stop_transmittance": stop, "occupied": occupied, "backbone": scene.cfg.backbone.name,
+            "encoding": scene.cfg.encoding.name}
 
 
 def report(results: dict[str, dict], info: dict[str, Any], cmd: str, quick: bool, notes: list[str]) -> str:

@@ -53,7 +53,7 @@ log = logging.getLogger("bench.stylization")
 NAME = "stylization"
 PROMPT = "Vincent van Gogh"
 RANDOM_CLIP = ["guidance=clip", "guidance.allow_random_weights=true", "guidance.allow_download=false",
-               "guidance.clip.pretrained=null", "guidance.vgg.weights=null"]
+               "guidance.pretrained=null", "guidance.perceptual.weights=null"]
 QUICK_OVERRIDES = ["render.num_samples=16", "render.occupancy.resolution=16", "stylize.patch_size=16",
                    "render.chunk=1024", "data.resolution=32", "stylize.num_negatives=8"]
 
@@ -98,7 +98,8 @@ class Context:
     """Scene, setup and source weights shared by every run (built through :mod:`nerfart_plugin.run.factories`)."""
 
     def __init__(self, overrides: list[str], source_checkpoint: Optional[Path], source: str = "fresh") -> None:
-        from nerfart_plugin.run.factories import build_renderer, build_scene, load_renderer_state
+        from nerfart_plugin.systems.base import build_renderer
+        from nerfart_plugin.run.factories import build_scene, load_renderer_state
         from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 
         self.base = overrides
@@ -133,7 +134,7 @@ def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[in
     """Part 0: PSNR of K-sample renders of the source against a 256-sample render, and seconds per view."""
     import torch
 
-    from nerfart_plugin.run.factories import build_renderer
+    from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.objectives.losses import psnr
     from nerfart_plugin.rendering.two_pass import render_fixed_samples
 
@@ -169,13 +170,14 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
     import lightning as L
 
     from nerfart_plugin.objectives.evaluation import clip_scores
-    from nerfart_plugin.run.factories import build_style, build_stylization_system
+    from nerfart_plugin.guidance.style import build_style
+    from nerfart_plugin.run.factories import build_stylization_system
     from nerfart_plugin.run.fit import train_steps
 
     c = common.compose(["stage=stylize", f"+prompt={json.dumps(prompt)}", *ctx.base, *overrides])
     L.seed_everything(int(c["seed"]), verbose=False)
     if clip_overrides and c["guidance"]["name"] == "clip":
-        c["guidance"]["clip"]["model_overrides"] = clip_overrides
+        c["guidance"]["model_overrides"] = clip_overrides
     scene = ctx.scene.with_config(c)
     style = build_style(scene.cfg, guidance, perceptual)
     system = build_stylization_system(scene, ctx.source_state, style)
@@ -350,7 +352,7 @@ def main(argv: list[str] | None = None) -> int:
     ], "lr")
     body += ["", f"Ratio step / CLIP reference = **{ratio:.2f}** (goal < 2): **{'MET' if ratio < 2 else 'NOT MET'}**"
              + (" (quick run: not judged)" if q else "") + ".",
-             "", f"The guidance encodes images in {prec} (`guidance.clip.precision=auto`: bf16 on CPUs with native "
+             "", f"The guidance encodes images in {prec} (`guidance.precision=auto`: bf16 on CPUs with native "
              "bf16, fp16 on CUDA, else float32); the reference is the plain float32 model, as a user would time it.",
              "", f"Floor of the step from CLIP alone: the global view and {k} local patches are {1 + k} CLIP image "
              f"forward+backward passes ({clip_part:.2f} s isolated = {clip_part / ref:.2f}x the reference), so with "

@@ -37,16 +37,17 @@ def settings_page() -> str:
 
 
 #: the component sections whose settings are declared beside each component: (kind, title, what the key picks)
-COMPONENT_KINDS = (("data", "the scene loaders", "`data=<kind>` picks the loader; besides `data.path`, `data.ndc`, "
-                    "`data.background_color` and `data.subject`, each takes the settings below."),
+COMPONENT_KINDS = (("data", "the scene loaders", "`data=<name>` picks the loader (`data.name`); besides `data.path`, "
+                    "`data.ndc`, `data.background_color` and `data.subject`, each takes the settings below."),
                    ("backbone", "the fields", "`backbone=<name>` picks the field."),
                    ("encoding", "the position encodings", "`encoding=<name>` picks the encoding (the view "
                     "directions' `backbone.dir_encoding` takes the same settings)."),
-                   ("guidance", "the guides", "`guidance=<name>` picks the guide; its settings live in "
-                    "`guidance.<name>`, next to the common keys `guidance.allow_random_weights`, "
-                    "`guidance.allow_download` and `guidance.perceptual`."),
-                   ("perceptual", "the feature networks of Eq. 9", "`guidance.perceptual=<name>` picks one "
-                    "(default: the guide's own choice); its settings live in the sub-section named below."))
+                   ("guidance", "the guides", "`guidance=<name>` picks the guide; its settings are the section's, "
+                    "next to the keys every guide has: `guidance.allow_random_weights`, `guidance.allow_download` "
+                    "and the section `guidance.perceptual`."),
+                   ("perceptual", "the feature networks of Eq. 9", "`guidance.perceptual.name=<name>` (or "
+                    "`guidance.perceptual=<name>`, with that network's defaults) picks one (default: the guide's own "
+                    "choice); its settings are the section's."))
 
 
 def component_lines() -> list[str]:
@@ -61,7 +62,7 @@ def component_lines() -> list[str]:
         for name in registry.names(kind):
             config = config_of(registry.get(kind, name))
             doc = (config.__doc__ or registry.get(kind, name).__doc__ or "").strip().split("\n\n")[0]
-            head = f"guidance.perceptual={name}" if kind == "perceptual" else f"{kind}={name}"
+            head = f"guidance.perceptual.name={name}" if kind == "perceptual" else f"{kind}={name}"
             lines += ["", f"### `{head}`", "", " ".join(doc.split()).replace("``", "`"), "",
                       "| setting | default | meaning | cache key |", "|---|---|---|:-:|"]
             prefix = f"{config.section}." if kind in ("guidance", "perceptual") else f"{kind}."

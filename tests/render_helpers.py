@@ -14,7 +14,8 @@ def tiny_renderer(backbone: str, occupancy: int, samples: int = 12, **backbone_k
     per side (0: no occupancy grid); ``samples`` per ray; ``backbone_kw``: backbone settings."""
     setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, samples, True)
     enc = {"name": "grid", "resolution": 16} if backbone != "neus" else {"name": "frequency", "n_freqs": 4}
-    return build_renderer({"name": backbone, **backbone_kw}, enc, {"occupancy": {"warmup_steps": 0}}, setup)
+    return build_renderer({"backbone": {"name": backbone, **backbone_kw}, "encoding": enc,
+                           "render": {"occupancy": {"warmup_steps": 0}}}, setup)
 
 
 def front_view(H: int, W: int, focal: float) -> dict:

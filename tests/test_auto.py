@@ -34,7 +34,7 @@ def test_every_auto_setting_names_where_it_is_decided():
 
 
 def test_the_record_keeps_what_was_auto_and_refuses_an_unnamed_setting():
-    cfg = {"encoding": {"resolution": "auto", "levels": 4}, "device": "auto", "data": {"kind": "h3ds"}}
+    cfg = {"encoding": {"resolution": "auto", "levels": 4}, "device": "auto", "data": {"name": "h3ds"}}
     block = recorded(cfg, {"encoding.resolution": 256, "encoding.levels": 4, "device": torch.device("cpu"),
                            "data.resolution": 256})
     assert block == {"encoding.resolution": 256, "device": "cpu"}  # levels was set by the user; no data.resolution

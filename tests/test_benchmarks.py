@@ -114,7 +114,7 @@ def test_paper_resolution_times_both_precisions() -> None:
 
     mod = _load("paper_resolution")
     g = build_guidance({"name": "clip", "allow_random_weights": True, "allow_download": False,
-                        "clip": {"pretrained": None, "model_overrides": TINY_TEST_OVERRIDES}})
+                        "pretrained": None, "model_overrides": TINY_TEST_OVERRIDES})
     vgg = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), layers=["relu1_2"])
     calls: list[str] = []
     costs = mod.precision_costs(g, vgg, lambda: calls.append(g.precision), 16, 16, 1)

@@ -88,12 +88,12 @@ def test_plus_data_at_package_composes_a_second_data_config():
     first ``data`` untouched), which the schema then names as an unknown top-level key."""
     from nerfart_plugin.errors import ConfigError
     from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.config.schema import check_settings, to_plain
+    from nerfart_plugin.config.schema import parse_config
 
     cfg = load_config(normalize_overrides(["data=llff", "data.path=x", "+data@foo=h3ds"]))
-    assert cfg.foo.kind == "h3ds" and cfg.data.kind == "llff"
+    assert cfg.foo.name == "h3ds" and cfg.data.name == "llff"
     with pytest.raises(ConfigError, match="foo"):
-        check_settings(to_plain(cfg))
+        parse_config(cfg)
 
 
 PROMPTS = [
@@ -215,7 +215,7 @@ def test_cfg_job_default_backbone_is_volsdf():
     cfg = _job_cfg()
     assert cfg["backbone"]["name"] == "volsdf" and cfg["stage"] == "all"
     assert (
-        cfg["data"]["kind"] == "h3ds" and cfg["experiment"]["lambda_perceptual"] == 2.0
+        cfg["data"]["name"] == "h3ds" and cfg["experiment"]["lambda_perceptual"] == 2.0
     )
 
 

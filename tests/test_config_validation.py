@@ -17,10 +17,23 @@ from pydantic import BaseModel
 from nerfart_plugin.config import (sections as config_components, compose as config_help, issues as config_issues,
     schema)
 from nerfart_plugin.config.compose import config_dir, group_options
+from nerfart_plugin.config.migrate import CONFIG_FORMAT, to_format_1
 from nerfart_plugin.errors import ConfigError, NerfArtError
-from nerfart_plugin.run.pipeline import Pipeline, validate_config
+from nerfart_plugin.run.pipeline import Pipeline, check_stage
 
 from pipeline_helpers import composed, run_cli_subprocess
+
+
+def _plain_of(c):
+    """The plain validated settings of ``c`` (the one validation, :func:`schema.parse_config`)."""
+    return schema.parse_config(c)[1]
+
+
+def _validated(c):
+    """``c`` validated as the pipeline does: the config's own checks, then the stage's."""
+    run, plain = schema.parse_config(c)
+    check_stage(run)
+    return plain
 
 
 @functools.lru_cache(maxsize=None)
@@ -35,7 +48,7 @@ def cfg(*overrides: str) -> dict:
 
 def error_of(*overrides: str) -> str:
     with pytest.raises(ConfigError) as info:
-        schema.check_settings(cfg(*overrides))
+        _plain_of(cfg(*overrides))
     return str(info.value)
 
 
@@ -69,9 +82,9 @@ def test_yaml_repeats_no_schema_default():
 
 def test_composed_defaults_are_the_schema_defaults():
     composed = cfg()
-    defaults = schema.RunConfig().model_dump(mode="json", exclude=set(config_components.COMPONENTS))
+    defaults = schema.RunConfig().model_dump(mode="json", exclude=set(config_components.TOP_LEVEL))
     assert {k: composed[k] for k in defaults} == defaults
-    assert schema.check_settings(composed) == composed  # validation changes nothing in the defaults
+    assert _plain_of(composed) == composed  # validation changes nothing in the defaults
 
 
 def test_help_lists_every_setting_with_its_description():
@@ -101,7 +114,7 @@ GROUP_VARIANTS = [(), ("data=llff", "data.path=x"), ("data=selfie", "data.path=x
 @pytest.mark.parametrize("overrides", GROUP_VARIANTS, ids=lambda o: " ".join(o) or "default")
 def test_every_group_option_validates(overrides):
     c = cfg(*overrides)
-    assert schema.check_settings(c) == c
+    assert _plain_of(c) == c
 
 
 # ---------------------------------------------------------------------- the reported cases (preset=draft)
@@ -123,7 +136,7 @@ def test_reported_impossible_settings_are_one_config_error(override, message):
 
 
 def test_val_every_zero_means_no_validation():
-    c = schema.check_settings(cfg("preset=draft", "reconstruct.val_every=0"))
+    c = _plain_of(cfg("preset=draft", "reconstruct.val_every=0"))
     assert c["reconstruct"]["val_every"] == 0
 
 
@@ -169,10 +182,11 @@ OTHER_CASES = [
     ("backbone.dir_encoding.degree=9", "backbone.dir_encoding.degree=9: an integer in [1, 4]"),
     ("data.resolution=-1", "data.resolution=-1: one of auto, or an integer in [8, 8192], or null"),
     ("data.holdout_every=-2", "data.holdout_every=-2: an integer in [0, "),
-    ("data.kind=foo", "data.kind='foo': one of h3ds, llff, nerfstudio, selfie"),
+    ("data.name=foo", "data.name='foo': one of h3ds, llff, nerfstudio, selfie"),
+    ("+data.kind=llff", "data.kind='llff': the loader is chosen by data.name now: data.name=llff"),
     ("backbone.name=foo", "backbone.name='foo': one of nerf, neus, volsdf"),
-    ("guidance.clip.precision=fp8", "guidance.clip.precision='fp8': one of auto, fp32, bf16, fp16"),
-    ("guidance.vgg.layers=[relu9_9]", "guidance.vgg.layers=['relu9_9']: a list of at least one value, each one of"),
+    ("guidance.precision=fp8", "guidance.precision='fp8': one of auto, fp32, bf16, fp16"),
+    ("guidance.perceptual.layers=[relu9_9]", "guidance.perceptual.layers=['relu9_9']: a list of at least one value, each one of"),
     ("guidance.allow_download=sometimes", "guidance.allow_download='sometimes': true or false, or null"),
 ]
 
@@ -184,7 +198,9 @@ def test_other_impossible_settings(override, message):
 
 
 #: cache keys of the component sections as runs made before the typed component configs computed them (commit
-#: b040aa3, constructor reflection): moving a setting's home must not move existing run folders
+#: b040aa3, constructor reflection): moving a setting's home must not move existing run folders. Since the settings
+#: format 2 (one idiom: data.name, guidance.<key>) they are the keys of the format-1 view (config.migrate), which
+#: run.keys computes beside the current key so that runs made before are found again
 COMPONENT_KEYS = {(): "8f4083ed19ee", ("backbone=neus",): "c30e583f41be",
                   ("backbone=nerf", "encoding=frequency"): "e5dc05d8ad24", ("data=llff", "data.path=/x"): "3cc1344a7b9f",
                   ("data=selfie", "data.path=/x"): "a722a84580aa", ("data=nerfstudio", "data.path=/x"): "2a97a4dd1ee4",
@@ -192,21 +208,21 @@ COMPONENT_KEYS = {(): "8f4083ed19ee", ("backbone=neus",): "c30e583f41be",
                   ("backbone.hidden_dim=32", "data.resolution=64", "backbone.dir_encoding.degree=3"): "b453a102a338"}
 #: the same for the guidance section (its keys were read from the guides' and perceptual networks' constructors)
 GUIDANCE_KEYS = {(): "f3b25190bc95", ("guidance=toy",): "03c3829bbda7", ("guidance=imagenet",): "6900ee4525fb",
-                 ("guidance=imagenet", "guidance.lite_perceptual.stages=[1,2]", "+guidance.lite_perceptual.input_size=160"):
+                 ("guidance=imagenet", "guidance.perceptual.stages=[1,2]", "+guidance.perceptual.input_size=160"):
                      "0fcc7e7f7609",
-                 ("guidance.vgg.layers=[relu1_2]", "guidance.clip.precision=fp32", "guidance.perceptual=edges",
-                  "+guidance.edges.num_scales=2"): "8936c9704913",
-                 ("guidance=toy", "guidance.toy.num_structure=4"): "04b1d6bd44b7",
-                 ("guidance=imagenet", "guidance.imagenet.source_top_k=3"): "5139ce4198df"}
+                 ("guidance=toy", "guidance.perceptual.num_scales=2"): "852a702239cf",
+                 ("guidance.precision=fp32", "guidance.perceptual.layers=[relu1_2]"): "b7d49545f872",
+                 ("guidance=toy", "guidance.num_structure=4"): "04b1d6bd44b7",
+                 ("guidance=imagenet", "guidance.source_top_k=3"): "5139ce4198df"}
 
 
 @pytest.mark.parametrize("overrides", list(COMPONENT_KEYS))
 def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
     from nerfart_plugin.utils.io import config_hash
 
-    run, _ = schema.parse_config(cfg(*overrides))
-    sections = {"backbone": run.backbone, "encoding": run.encoding,
-                "data": schema.component_result_settings("data", run.data)}
+    old = to_format_1(schema.parse_config(cfg(*overrides))[1])
+    sections = {"backbone": old["backbone"], "encoding": old["encoding"],
+                "data": schema.component_result_settings("data", old["data"])}
     assert config_hash(sections) == COMPONENT_KEYS[overrides]
 
 
@@ -214,8 +230,8 @@ def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tupl
 def test_the_guidance_section_keeps_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
     from nerfart_plugin.utils.io import config_hash
 
-    run, _ = schema.parse_config(cfg(*overrides))
-    assert config_hash({"guidance": run.guidance}) == GUIDANCE_KEYS[overrides]
+    assert config_hash({"guidance": to_format_1(schema.parse_config(cfg(*overrides))[1])["guidance"]}) \
+        == GUIDANCE_KEYS[overrides]
 
 
 def test_interpolated_keys_are_reported_with_their_source():
@@ -252,7 +268,7 @@ def test_unknown_keys_suggest_the_closest_valid_key():
 
 
 def test_every_key_the_code_reads_has_a_default():
-    c = schema.check_settings(cfg("render.ndc_bound=2.0", "experiment.lambda_eikonal=0.3"))
+    c = _plain_of(cfg("render.ndc_bound=2.0", "experiment.lambda_eikonal=0.3"))
     assert c["render"]["ndc_bound"] == 2.0 and c["experiment"]["lambda_eikonal"] == 0.3
 
 
@@ -270,7 +286,7 @@ def test_values_are_converted_only_where_their_meaning_changes():
     c["prompt_augment"] = "false"
     c["prompt"] = 1984
     c["data"]["resolution"] = 128
-    out = schema.check_settings(c)
+    out = _plain_of(c)
     assert out["reconstruct"]["batch_rays"] == 512 and out["prompt_augment"] is False and out["prompt"] == "1984"
     assert type(out["data"]["resolution"]) is int and type(out["reconstruct"]["lr"]) is float
 
@@ -283,7 +299,7 @@ def test_pipeline_validates_before_touching_data(tmp_path):
     with pytest.raises(ConfigError, match="source_checkpoint=.*no such file"):
         Pipeline(cfg("stage=export", f"source_checkpoint={missing}.ckpt", f"output_root={tmp_path}"))
     with pytest.raises(ConfigError, match="device=cuda:7"):
-        validate_config(cfg("stage=reconstruct", "device=cuda:7"))
+        _validated(cfg("stage=reconstruct", "device=cuda:7"))
 
 
 @pytest.mark.slow
@@ -301,7 +317,7 @@ def test_cli_bad_value_is_one_config_error_line_without_traceback(tmp_path):
 def _leaves(model: type[BaseModel], prefix: str) -> list[str]:
     out = []
     for name, info in model.model_fields.items():
-        if typing.get_origin(info.annotation) is dict:
+        if name in config_components.TOP_LEVEL:
             continue  # a component section: enumerated from its component below
         sub = config_issues._model_in(info.annotation)
         out += _leaves(sub, f"{prefix}{name}.") if sub is not None else [f"{prefix}{name}"]
@@ -311,22 +327,12 @@ def _leaves(model: type[BaseModel], prefix: str) -> list[str]:
 def _component_leaves(variant: tuple[str, ...]) -> list[str]:
     c = cfg(*variant)
     keys = []
-    for section in ("data", "backbone", "encoding"):
-        model = _section_model(section, c[section])
-        keys += [f"{section}.{k}" for k in model.model_fields]
+    for section in config_components.TOP_LEVEL:
+        keys += [k for k in config_components.section_keys(section, c[section]["name"])
+                 if k != "guidance.perceptual"]
     keys += [f"backbone.dir_encoding.{k}" for k in c["backbone"]["dir_encoding"]]
-    keys += [f"guidance.{k}" for k in config_components.GuidanceCommon.model_fields]
-    for part, config in config_components.guidance_parts().items():
-        if part in c["guidance"]:
-            keys += [f"guidance.{part}.{k}" for k in config.model_fields]
+    keys += config_components.section_keys("guidance.perceptual", c["guidance"]["perceptual"]["name"])
     return keys
-
-
-def _section_model(section: str, values: dict) -> type[BaseModel]:
-
-    if section == "data":
-        return config_components.data_model(values["kind"])
-    return config_components.named_model(section, values["name"])
 
 
 #: every option of every component group is among the variants (test_property_test_covers_every_section)
@@ -402,7 +408,7 @@ def test_property_any_value_of_any_setting_is_valid_or_a_project_error(tmp_path,
     if two and extra[0] == variant:
         _set(c, extra[1], value2)
     try:
-        out = validate_config(c)
+        out = _validated(c)
     except NerfArtError:
         return
     try:
@@ -425,7 +431,7 @@ def test_every_setting_with_every_edge_value(tmp_path, variant):
             c = cfg(*variant, "stage=reconstruct")
             _set(c, key, copy.deepcopy(value))
             try:
-                out = validate_config(c)
+                out = _validated(c)
             except NerfArtError:
                 continue
             try:
@@ -440,13 +446,13 @@ def test_property_test_covers_every_section():
     sections = {key.split(".")[0] for _, key in SETTINGS}
     assert set(schema.RunConfig.model_fields) <= sections, set(schema.RunConfig.model_fields) - sections
     chosen = {o for v in VARIANTS for o in v if "=" in o and "." not in o.split("=")[0]}
-    defaults = {f"{g}={cfg()[g]['kind' if g == 'data' else 'name']}" for g in ("data", "backbone", "encoding", "guidance")}
+    defaults = {f"{g}={cfg()[g]['name']}" for g in ("data", "backbone", "encoding", "guidance")}
     for group in ("data", "backbone", "encoding", "guidance"):
         missing = {f"{group}={o}" for o in group_options(group)} - chosen - defaults
         assert not missing, f"no property-test variant selects {sorted(missing)}: add one to VARIANTS"
     keys = {key for _, key in SETTINGS}
-    assert {"data.sfm_threads", "data.factor", "guidance.clip.precision", "guidance.toy.input_size",
-            "guidance.vgg.layers", "guidance.edges.num_scales", "backbone.inv_s_max", "backbone.beta_min",
+    assert {"data.sfm_threads", "data.factor", "guidance.precision", "guidance.input_size",
+            "guidance.perceptual.layers", "guidance.perceptual.num_scales", "backbone.inv_s_max", "backbone.beta_min",
             "backbone.density_activation", "encoding.n_freqs", "encoding.n_components", "encoding.mlp_lr_scale",
             "backbone.dir_encoding.degree", "render.occupancy.threshold", "trainer.precision"} <= keys
 
@@ -486,8 +492,9 @@ def test_explicit_source_checkpoint_key_covers_its_content_and_the_render_settin
     ckpt.write_bytes(b"one")
 
     def key(*overrides: str, content: str = "scene-a") -> str:
-        c = schema.RunConfig.model_validate(cfg(f"source_checkpoint={ckpt}", *overrides))
-        return stylization_source(SimpleNamespace(cfg=c, scene=SimpleNamespace(content_hash=content)), None)[1]
+        c, plain = schema.parse_config(cfg(f"source_checkpoint={ckpt}", *overrides))
+        scene = SimpleNamespace(cfg=c, plain=plain, scene=SimpleNamespace(content_hash=content))
+        return stylization_source(scene, None)[1][CONFIG_FORMAT]
 
     base = key()
     assert key() == base and key("render.chunk=1024") == base  # memory only
@@ -520,6 +527,6 @@ def test_a_registered_perceptual_network_is_picked_by_name(monkeypatch):
 
     registry.names("perceptual")  # the package's own networks first
     monkeypatch.setitem(registry._REGISTRY["perceptual"], "gray_edges", GrayEdges)
-    out = validate_config(cfg("guidance=toy", "guidance.perceptual=gray_edges", "stage=reconstruct"))
+    out = _validated(cfg("guidance=toy", "guidance.perceptual=gray_edges", "stage=reconstruct"))
     assert type(build_perceptual(out["guidance"])) is GrayEdges
     assert "did you mean gray_edges?" in error_of("guidance=toy", "guidance.perceptual=gray_edge")

@@ -127,10 +127,10 @@ def test_clip_guidance_on_cuda_matches_the_cpu() -> None:
     from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
 
     cfg = {"name": "clip", "allow_random_weights": True,
-           "clip": {"pretrained": None, "model_overrides": TINY_TEST_OVERRIDES, "precision": "fp32"}}
+           "pretrained": None, "model_overrides": TINY_TEST_OVERRIDES, "precision": "fp32"}
     torch.manual_seed(0)
     ref = build_guidance(cfg)
-    g = build_guidance({**cfg, "clip": {**cfg["clip"], "precision": "auto"}})
+    g = build_guidance({**cfg, "precision": "auto"})
     g.net.load_state_dict(ref.net.state_dict())
     g.to("cuda")
     cos = torch.nn.functional.cosine_similarity

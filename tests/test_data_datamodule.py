@@ -11,7 +11,7 @@ from nerfart_plugin.errors import ConfigError
 
 @pytest.fixture(scope="module")
 def dm():
-    m = SceneDataModule({"kind": "h3ds", "path": None, "resolution": 32})
+    m = SceneDataModule({"name": "h3ds", "path": None, "resolution": 32})
     m.setup("fit")
     return m
 
@@ -46,7 +46,7 @@ def test_val_full_views(dm):
 
 @pytest.mark.slow
 def test_ndc_forward_facing(shared_data):
-    m = SceneDataModule({"kind": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40})
+    m = SceneDataModule({"name": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40})
     m.setup("fit")
     assert m.ndc
     b = {k: v[::97] for k, v in m.train_rays.items()}
@@ -56,14 +56,14 @@ def test_ndc_forward_facing(shared_data):
     end = b["rays_o"] + b["rays_d"]
     assert torch.allclose(end[:, 2], torch.ones(n), atol=1e-5)  # t = 1 is infinity
     assert end[:, :2].abs().max() < 1.6  # other views' frusta overhang the reference one a little
-    off = SceneDataModule({"kind": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40, "ndc": False})
+    off = SceneDataModule({"name": "llff", "path": str(shared_data / "llff_fern"), "resolution": 40, "ndc": False})
     off.setup("fit")
     assert not off.ndc and (off.train_rays["far"] > 1).all()
 
 
 def test_config_errors(dm):
     with pytest.raises(ConfigError, match="data.path is required"):
-        SceneDataModule({"kind": "llff"})
+        SceneDataModule({"name": "llff"})
     bad = SceneDataModule({"path": None, "resolution": 16, "ndc": True})
     with pytest.raises(ConfigError, match="ndc"):
         bad.setup("fit")

@@ -38,7 +38,7 @@ def test_every_loader_declares_its_settings_and_refuses_unknown_options():
     mistyped option, from Python or from the command line, is one ConfigError with the closest valid name."""
     from nerfart_plugin.config.components import config_of
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.config.sections import check_data
+    from nerfart_plugin.config.sections import check_section
 
     for kind in registry.names("data"):
         fields = config_of(registry.get("data", kind)).model_fields
@@ -46,7 +46,7 @@ def test_every_loader_declares_its_settings_and_refuses_unknown_options():
         assert all(info.description for info in fields.values()), f"{kind}: a setting without a meaning"
     with pytest.raises(ConfigError, match=r"data.resolutoin=64: unknown setting; did you mean data.resolution\?"):
         load_scene("h3ds", default_scene_path(), resolutoin=64)
-    _, issues = check_data({"kind": "llff", "path": "x", "factr": 4})
+    _, issues = check_section("data", {"name": "llff", "path": "x", "factr": 4})
     assert [str(i) for i in issues] == [i for i in map(str, issues) if "did you mean data.factor?" in i] and issues
 
 

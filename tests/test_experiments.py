@@ -33,7 +33,11 @@ def test_command_line_beats_preset() -> None:
 
 def test_ddp_settings_reach_the_trainer_and_stylize_refuses_them() -> None:
     from nerfart_plugin.errors import ConfigError
-    from nerfart_plugin.run.pipeline import validate_config
+    from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.run.pipeline import check_stage
+
+    def validate_config(c):
+        check_stage(parse_config(c)[0])
 
     cfg = _compose("stage=reconstruct", "trainer.strategy=ddp", "trainer.devices=4", "trainer.num_nodes=2")
     validate_config(cfg)  # allowed for the reconstruction stage

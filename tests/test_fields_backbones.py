@@ -161,7 +161,7 @@ def test_grid_levels_halve_the_side_down_from_the_finest() -> None:
 
 
 def test_bad_configs_raise_config_error() -> None:
-    with pytest.raises(ConfigError, match="Valid backbone names"):
+    with pytest.raises(ConfigError, match="backbone.name=.nope.: one of nerf, neus, volsdf"):
         build_field({"name": "nope"}, ENCODINGS["frequency"])
     with pytest.raises(ConfigError, match=r"backbone.hiden_dim=3: unknown setting; did you mean backbone.hidden_dim\?"):
         build_field({"name": "nerf", "hiden_dim": 3}, ENCODINGS["frequency"])

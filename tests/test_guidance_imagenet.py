@@ -135,7 +135,7 @@ def test_missing_weights_are_a_clear_error(monkeypatch, tmp_path) -> None:
 
 
 def test_build_from_config_and_stamp() -> None:
-    g = build_guidance({"name": "imagenet", "imagenet": {"model": "lite0"}})
+    g = build_guidance({"name": "imagenet", "model": "lite0"})
     assert isinstance(g, ImageNetGuidance) and g.output_stamp() == "_VERIFY-imagenet" and not g.is_real
     p = build_perceptual({"name": "imagenet"})
     feats = p.features(torch.rand(1, 3, 64, 48))

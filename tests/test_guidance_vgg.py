@@ -13,7 +13,7 @@ from nerfart_plugin.guidance import EdgePerceptual, Perceptual, build_perceptual
 
 
 def test_vgg_random_feature_shapes_and_truncation() -> None:
-    p = build_perceptual({"name": "clip", "allow_random_weights": True, "vgg": {"weights": None}})
+    p = build_perceptual({"name": "clip", "allow_random_weights": True, "perceptual": {"name": "vgg", "weights": None}})
     assert isinstance(p, Perceptual) and p.is_real is False
     assert p.layers == ["relu1_2", "relu2_2", "relu3_3", "relu4_3"]
     assert len(p.features_net) == 23  # truncated after relu4_3
@@ -38,7 +38,7 @@ def test_vgg_missing_weights(no_network, monkeypatch: pytest.MonkeyPatch, tmp_pa
     with pytest.raises(WeightsMissingError) as ei:
         Perceptual()
     msg = str(ei.value)
-    assert "vgg16-397923af.pth" in msg and str(tmp_path) in msg and "guidance.vgg.weights=" in msg
+    assert "vgg16-397923af.pth" in msg and str(tmp_path) in msg and "guidance.perceptual.weights=" in msg
     with pytest.raises(WeightsMissingError, match="missing.pth"):
         Perceptual(weights=str(tmp_path / "missing.pth"))
     with pytest.raises(ConfigError):
@@ -72,7 +72,7 @@ def test_edge_perceptual_for_toy() -> None:
 
 @pytest.mark.parametrize("delta", [0.3, 0.05])
 def test_vgg_bf16_matches_fp32_loss_and_image_gradient(delta: float) -> None:
-    """guidance.vgg.precision=bf16 (the CPU default where the CPU has native bf16): Eq. 9 between a view
+    """guidance.perceptual.precision=bf16 (the CPU default where the CPU has native bf16): Eq. 9 between a view
     and a changed view (a stylization step's edit, large and small) keeps its value within 2% and its image
     gradient within cosine 0.99 of fp32, and an unchanged view scores exactly 0 with a zero gradient."""
     torch.manual_seed(0)
@@ -96,7 +96,7 @@ def test_vgg_bf16_matches_fp32_loss_and_image_gradient(delta: float) -> None:
 
 
 def test_vgg_fp32_stays_fp32_under_an_outer_autocast() -> None:
-    """guidance.vgg.precision=fp32 inside a step run under trainer.precision=bf16-mixed: the resize and the
+    """guidance.perceptual.precision=fp32 inside a step run under trainer.precision=bf16-mixed: the resize and the
     trunk run in float32 (the same features as outside the autocast)."""
     torch.manual_seed(0)
     p = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="fp32", max_size=48)
@@ -110,7 +110,7 @@ def test_vgg_fp32_stays_fp32_under_an_outer_autocast() -> None:
 
 
 def test_vgg_precision_errors() -> None:
-    with pytest.raises(ConfigError, match="guidance.vgg.precision"):
+    with pytest.raises(ConfigError, match="guidance.perceptual.precision"):
         Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="int8")
     p = Perceptual(weights=None, policy=WeightsPolicy(allow_random_weights=True), precision="fp16")
     with pytest.raises(ConfigError, match="fp16 needs a CUDA"):

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import torch
 
+from nerfart_plugin.guidance.style import Style
+
 from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.guidance import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual
@@ -33,7 +35,7 @@ def _rays(n: int = 64) -> dict:
 
 def _recon(tv_weight: float, rays: dict | None = None, **cfg) -> ReconstructionSystem:
     enc = {"name": "grid", "resolution": 8, "n_components": 2, "out_features": 8, "tv_weight": tv_weight}
-    return ReconstructionSystem({"batch_rays": 32, **cfg}, BACKBONE, enc, RENDER, _setup(),
+    return ReconstructionSystem({"reconstruct": {"batch_rays": 32, **cfg}, "backbone": BACKBONE, "encoding": enc, "render": RENDER}, _setup(),
                                 train_rays=rays if rays is not None else _rays())
 
 
@@ -72,9 +74,9 @@ def test_lambda_zero_and_missing_masks_skip_terms():
     terms, _ = system.losses(system.renderer(batch, perturb=True), batch)
     assert set(terms) == {"rgb"}
     enc = {"name": "grid", "resolution": 8, "n_components": 2}
-    no_masks = ReconstructionSystem({}, BACKBONE, enc, RENDER, _setup(masks=False), train_rays=_rays())
+    no_masks = ReconstructionSystem({"reconstruct": {}, "backbone": BACKBONE, "encoding": enc, "render": RENDER}, _setup(masks=False), train_rays=_rays())
     assert no_masks.lambdas["mask"] == 0.0
-    nerf = ReconstructionSystem({}, {"name": "nerf", "hidden_dim": 16}, enc, RENDER, _setup(), train_rays=_rays())
+    nerf = ReconstructionSystem({"reconstruct": {}, "backbone": {"name": "nerf", "hidden_dim": 16}, "encoding": enc, "render": RENDER}, _setup(), train_rays=_rays())
     assert nerf.reg_lambdas == {}  # a density field has no eikonal term
 
 
@@ -96,7 +98,7 @@ def test_mask_ray_share_draws_the_subject_more_often():
     assert abs(float(uniform.sample_batch(3)["mask"].mean()) - float(uniform.train_rays["mask"].mean())) < 0.1
     enc = {"name": "grid", "resolution": 8, "n_components": 2}
     unmasked = {k: v for k, v in _rays().items() if k != "mask"}
-    no_masks = ReconstructionSystem({"mask_ray_share": 0.9, "batch_rays": 32}, BACKBONE, enc, RENDER,
+    no_masks = ReconstructionSystem({"reconstruct": {"mask_ray_share": 0.9, "batch_rays": 32}, "backbone": BACKBONE, "encoding": enc, "render": RENDER},
                                     _setup(masks=False), train_rays=unmasked)
     assert no_masks.foreground_rays() is None and no_masks.sample_batch(0)["rays_o"].shape == (32, 3)
 
@@ -109,14 +111,14 @@ def test_auto_mask_ray_share_is_the_scene_setups_decision():
     rays = _rays(4000)
     enc = {"name": "grid", "resolution": 8, "n_components": 2}
     cfg = {"batch_rays": 2000, "mask_ray_share_after": 0}
-    decided = ReconstructionSystem(cfg, BACKBONE, enc, RENDER, replace(_setup(), mask_ray_share=0.8), train_rays=rays)
+    decided = ReconstructionSystem({"reconstruct": cfg, "backbone": BACKBONE, "encoding": enc, "render": RENDER}, replace(_setup(), mask_ray_share=0.8), train_rays=rays)
     assert decided.cfg.mask_ray_share == "auto" and decided.mask_ray_share == 0.8
     assert decided.sample_batch(3)["mask"].mean() > 0.8 + 0.15 * rays["mask"].mean()
-    undecided = ReconstructionSystem(cfg, BACKBONE, enc, RENDER, _setup(), train_rays=rays)
+    undecided = ReconstructionSystem({"reconstruct": cfg, "backbone": BACKBONE, "encoding": enc, "render": RENDER}, _setup(), train_rays=rays)
     assert undecided.mask_ray_share == 0.0 and undecided.foreground_rays() is None
     g = torch.Generator().manual_seed(step_seed(0, 3))
     assert torch.equal(undecided.sample_batch(3)["rays_d"], rays["rays_d"][torch.randint(0, 4000, (2000,), generator=g)])
-    number = ReconstructionSystem({**cfg, "mask_ray_share": 0.3}, BACKBONE, enc, RENDER,
+    number = ReconstructionSystem({"reconstruct": {**cfg, "mask_ray_share": 0.3}, "backbone": BACKBONE, "encoding": enc, "render": RENDER},
                                   replace(_setup(), mask_ray_share=0.8), train_rays=rays)
     assert number.mask_ray_share == 0.3  # a number in the config wins over the setup's decision
 
@@ -125,12 +127,12 @@ def _stylization(cfg: dict, tv_weight: float = 0.5, occupancy: int = 8) -> Styli
     enc = {"name": "grid", "resolution": 8, "n_components": 2, "tv_weight": tv_weight}
     torch.manual_seed(0)
     setup = _setup(occupancy=occupancy)
-    src = build_renderer(BACKBONE, enc, RENDER, setup)
+    src = build_renderer({"backbone": BACKBONE, "encoding": enc, "render": RENDER}, setup)
     views = [camera_batch(torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), torch.eye(4)[:3], 8, 8, 0.5, 3.5, False)]
-    return StylizationSystem(cfg={"steps": 2, **cfg}, experiment={"lambda_global": 0.0, "lambda_local": 0.0},
-                             backbone_cfg=BACKBONE, encoding_cfg=enc, render_cfg=RENDER, setup=setup,
-                             source_state=src.state_dict(), views=views, guidance=ToyGuidance(),
-                             perceptual=EdgePerceptual(), prompt="red", source_prompt="a photo", negatives=["blue"])
+    style = Style(ToyGuidance(), EdgePerceptual(), False, "", "red", "red", "a photo", negatives=("auto", ["blue"]))
+    return StylizationSystem({"stylize": {"steps": 2, **cfg}, "experiment": {"lambda_global": 0.0, "lambda_local": 0.0},
+                              "backbone": BACKBONE, "encoding": enc, "render": RENDER}, setup, style,
+                             src.state_dict(), views)
 
 
 def test_stylize_num_samples_only_where_an_occupancy_grid_places_them():

@@ -31,7 +31,7 @@ build-backend = "setuptools.build_meta"
 name = "tiny-sdf-plugin"
 version = "0.0.1"
 
-[project.entry-points."nerfart_plugin.config.components"]
+[project.entry-points."nerfart_plugin.components"]
 tiny_sdf = "tiny_sdf_plugin.fields"
 
 [project.entry-points."nerfart_plugin.configs"]

@@ -134,8 +134,8 @@ def test_few_view_samples_only_where_an_occupancy_grid_places_them() -> None:
     for occupancy, want in ((8, 6), (0, 32)):
         torch.manual_seed(0)
         setup = SceneSetup("object", 1.0, False, [1.0, 1.0, 1.0], False, occupancy, 32, True)
-        r = build_renderer({"name": "volsdf"}, {"name": "grid", "resolution": 16},
-                           {"view_samples": 6, "occupancy": {"warmup_steps": 0}}, setup).eval()
+        r = build_renderer({"backbone": {"name": "volsdf"}, "encoding": {"name": "grid", "resolution": 16},
+                            "render": {"view_samples": 6, "occupancy": {"warmup_steps": 0}}}, setup).eval()
         assert r.view_samples == (6 if occupancy else None) and r.guided_samples(6) == (6 if occupancy else None)
         with torch.no_grad():
             full = r.render_chunked(view, chunk=50, with_normals=False)

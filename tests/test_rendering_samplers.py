@@ -178,9 +178,9 @@ def test_weighted_sampling_trains_a_density_field_end_to_end() -> None:
     returns reproduce it."""
     setup = SceneSetup("forward_facing", 1.0, False, None, True, 16, 16, False, [], "weighted")
     torch.manual_seed(0)
-    r = build_renderer({"name": "nerf", "hidden_dim": 16, "color_hidden_dim": 16},
-                       {"name": "grid", "resolution": 16, "n_components": 2, "out_features": 8},
-                       {"num_samples": 16}, setup)
+    r = build_renderer({"backbone": {"name": "nerf", "hidden_dim": 16, "color_hidden_dim": 16},
+                        "encoding": {"name": "grid", "resolution": 16, "n_components": 2, "out_features": 8},
+                        "render": {"num_samples": 16}}, setup)
     assert r.occupancy_sampling == "weighted" and r.occupancy is not None
     batch = _rays(128, spread=0.1)
     target = torch.full((128, 3), 0.8)

@@ -122,7 +122,8 @@ def test_auto_grid_resolution_reaches_the_field() -> None:
 
     enc = {"name": "grid", "resolution": "auto", "n_components": 2, "out_features": 8}
     s = decide_setup(_scene("forward_facing", False, size=504), _render(), ndc=True, encoding_cfg=enc)
-    r = build_renderer({"name": "nerf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(), s)
+    r = build_renderer({"backbone": {"name": "nerf", "hidden_dim": 16, "color_hidden_dim": 16}, "encoding": enc,
+                        "render": _render()}, s)
     assert r.field.encoding.resolutions == [256] and tuple(r.field.encoding.planes[0].shape) == (3, 2, 256, 256)
     assert build_field({"name": "nerf"}, enc).encoding.resolutions == [128]
 
@@ -150,11 +151,12 @@ def test_auto_grid_levels_reach_the_field_and_old_checkpoints_keep_one() -> None
 
     enc = {"name": "grid", "resolution": "auto", "levels": "auto", "n_components": 2, "out_features": 8}
     s = decide_setup(_scene("object", True), _render(), ndc=False, encoding_cfg=enc)
-    r = build_renderer({"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(), s)
+    r = build_renderer({"backbone": {"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16}, "encoding": enc,
+                        "render": _render()}, s)
     assert r.field.encoding.resolutions == [32, 64, 128]
     old = {k: v for k, v in s.to_dict().items() if k != "grid_levels"}
-    r_old = build_renderer({"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16}, enc, _render(),
-                           SceneSetup(**old))
+    r_old = build_renderer({"backbone": {"name": "volsdf", "hidden_dim": 16, "color_hidden_dim": 16},
+                            "encoding": enc, "render": _render()}, SceneSetup(**old))
     assert r_old.field.encoding.resolutions == [128]
 
 

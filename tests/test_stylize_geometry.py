@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import torch
 
+from nerfart_plugin.guidance.style import Style
+
 from nerfart_plugin.guidance import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer
@@ -33,14 +35,14 @@ def ring_rays(radius: float, n: int = 64) -> dict:
 
 def system_for(cfg: dict) -> StylizationSystem:
     torch.manual_seed(0)
-    src = build_renderer(BACKBONE, ENCODING, RENDER, setup())
+    src = build_renderer({"backbone": BACKBONE, "encoding": ENCODING, "render": RENDER}, setup())
     src.occupancy.update(src.field, 0, force=True)  # the reconstruction's grid: a shell around r = 0.3
     views = [camera_batch(torch.tensor([[20.0, 0, 8], [0, 20.0, 8], [0, 0, 1]]), torch.eye(4)[:3], 16, 16,
                           0.5, 3.5, False)]
-    return StylizationSystem(cfg={"steps": 10, **cfg}, experiment={"lambda_global": 0.0, "lambda_local": 0.0},
-                             backbone_cfg=BACKBONE, encoding_cfg=ENCODING, render_cfg=RENDER, setup=setup(),
-                             source_state=src.state_dict(), views=views, guidance=ToyGuidance(),
-                             perceptual=EdgePerceptual(), prompt="red", source_prompt="a photo", negatives=["blue"])
+    style = Style(ToyGuidance(), EdgePerceptual(), False, "", "red", "red", "a photo", negatives=("auto", ["blue"]))
+    return StylizationSystem({"stylize": {"steps": 10, **cfg}, "experiment": {"lambda_global": 0.0, "lambda_local": 0.0},
+                              "backbone": BACKBONE, "encoding": ENCODING, "render": RENDER}, setup(), style,
+                             src.state_dict(), views)
 
 
 def grow_surface(system: StylizationSystem, by: float) -> None:

@@ -221,7 +221,7 @@ def test_a_training_run_is_watched_paused_and_stopped_from_the_browser(page, tmp
         try:
             outcome["result"] = run(tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=reconstruct", "reconstruct.steps=100000",
                                              "reconstruct.checkpoint_every=100000", "viewer.live=true",
-                                             "viewer.port=0", "viewer.render_share=0.5"))
+                                             "viewer.port=0", "viewer.render_share=0.5"), live=live.live_viewer)
         except RunInterrupted as exc:
             outcome["interrupted"] = str(exc)
 

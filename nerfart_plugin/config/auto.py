@@ -30,8 +30,8 @@ AUTO_SETTINGS: dict[str, str] = {
     "trainer.strategy": "Lightning's Trainer (fit.build_trainer)",
     # components, each deciding its own
     "backbone.grad_type": "fields.base.SDFField",
-    "guidance.clip.precision": "guidance.precision.compute_dtype (the CLIP guide)",
-    "guidance.vgg.precision": "guidance.precision.compute_dtype (the VGG perceptual network)",
+    "guidance.precision": "guidance.precision.compute_dtype (the CLIP guide)",
+    "guidance.perceptual.precision": "guidance.precision.compute_dtype (the VGG perceptual network)",
     # the style: the stylization's prompts, negatives and view size
     "source_prompt": "factories.build_style",
     "stylize.resolution": "factories.stylize_settings",

@@ -22,25 +22,19 @@ from __future__ import annotations
 import functools
 from typing import Any, Callable, ClassVar, Mapping, Optional, TypeVar, Union
 
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ValidationError
+
+from nerfart_plugin.config.issues import issues_from, raise_issues
+from nerfart_plugin.config.types import SettingsModel
 
 C = TypeVar("C", bound="ComponentConfig")
 
 
-class ComponentConfig(BaseModel):
+class ComponentConfig(SettingsModel, frozen=True):
     """The settings of one component; subclasses declare fields with :func:`~nerfart_plugin.config.types.Setting`."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True,
-                              protected_namespaces=(), frozen=True)
 
     #: where these settings live in a run's config (error messages name ``<section>.<key>``)
     section: ClassVar[str] = ""
-
-    @classmethod
-    def key(cls) -> str:
-        """The last part of :attr:`section`: the sub-section a guide's settings live in (``clip`` for
-        ``guidance.clip``)."""
-        return cls.section.rsplit(".", 1)[-1]
 
     @classmethod
     def build(cls: type[C], cfg: Union[C, Mapping[str, Any], None] = None, **options: Any) -> C:
@@ -53,8 +47,6 @@ class ComponentConfig(BaseModel):
         try:
             return cls.model_validate(values)
         except ValidationError as exc:
-            from nerfart_plugin.config.issues import issues_from, raise_issues
-
             raise_issues(issues_from(exc, cls, values, cls.section))
             raise  # pragma: no cover - raise_issues raised
 

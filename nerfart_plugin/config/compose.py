@@ -11,7 +11,7 @@ from typing import Any, Sequence
 from omegaconf import DictConfig, OmegaConf
 from pydantic import BaseModel
 
-from nerfart_plugin.config.sections import COMPONENTS
+from nerfart_plugin.config.sections import TOP_LEVEL
 from nerfart_plugin.config.issues import _model_in, show
 from nerfart_plugin.config.types import changes_results
 from nerfart_plugin.errors import ConfigError
@@ -25,7 +25,7 @@ SCHEMA_NODE = "nerfart_schema"
 def defaults_node() -> dict[str, Any]:
     """Every default of the sections with fixed keys, as the plain dict Hydra composes first, plus
     ``hydra.help.template`` listing every setting with its description (``--help``)."""
-    node = RunConfig().model_dump(mode="json", exclude=set(COMPONENTS))
+    node = RunConfig().model_dump(mode="json", exclude=set(TOP_LEVEL))
     node["hydra"] = {"help": {"template": help_template()}}
     return node
 

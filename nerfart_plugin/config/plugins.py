@@ -7,7 +7,7 @@ its Hydra config groups (``backbone/mine.yaml``, ...) go in a package named in
 ``nerfart_plugin.configs``, which the CLI appends to Hydra's config search path
 (:func:`searchpath_overrides`)::
 
-    [project.entry-points."nerfart_plugin.config.components"]
+    [project.entry-points."nerfart_plugin.components"]
     my_backbone = "my_backbone_plugin.fields"
     [project.entry-points."nerfart_plugin.configs"]
     my_backbone = "my_backbone_plugin.conf"
@@ -28,7 +28,7 @@ from nerfart_plugin.errors import ConfigError
 
 log = logging.getLogger(__name__)
 
-COMPONENTS_GROUP = "nerfart_plugin.config.components"
+COMPONENTS_GROUP = "nerfart_plugin.components"
 CONFIGS_GROUP = "nerfart_plugin.configs"
 _loaded: set[str] = set()
 

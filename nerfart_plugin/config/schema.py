@@ -9,7 +9,7 @@
   ``conf/config.yaml``'s defaults list, so presets, experiments and command-line
   overrides compose on top of it, ``--cfg job`` prints it and ``--help`` lists every
   field with its description.
-* :func:`check_settings` checks a composed config (a plain dict) before any data,
+* :func:`parse_config` checks a composed config before any data,
   weights or training is touched, and raises ONE :class:`~nerfart_plugin.errors.ConfigError`
   listing every violation as ``key=value: what is allowed (how to turn it off)``;
   :func:`parse_config` returns it typed (:class:`RunConfig`).
@@ -33,16 +33,18 @@ import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, BeforeValidator, Field, PrivateAttr, SerializeAsAny, ValidationError, field_validator
 
-from nerfart_plugin.config.sections import COMPONENTS, _check, data_model
+from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.sections import TOP_LEVEL, check_section, section_model, typed_section
 from nerfart_plugin.config.issues import Issue, issues_from, raise_issues
-from nerfart_plugin.config.types import Color, Float, Fraction, Int, PathText, Seed, Setting, changes_results
+from nerfart_plugin.config.types import (Color, Float, Fraction, Int, PathText, Seed, Setting, SettingsModel,
+                                         changes_results)
 from nerfart_plugin.errors import ConfigError
 
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
-    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "check_settings", "parse_config",
+    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS", "parse_config",
     "result_settings", "to_plain", "section",
 ]
 
@@ -51,14 +53,9 @@ MAX_GRAD_SAMPLES = 2**24
 #: samples of one no-grad chunk
 MAX_NOGRAD_SAMPLES = 2**26
 
-_MODEL_CONFIG = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True,
-                           protected_namespaces=(), validate_default=False)
 
-
-class Section(BaseModel):
-    """Base of every section: unknown keys refused, numbers finite."""
-
-    model_config = _MODEL_CONFIG
+class Section(SettingsModel):
+    """Base of every section with fixed keys (unknown keys refused, numbers finite)."""
 
 
 AutoBool = Union[Literal["auto"], bool]
@@ -379,6 +376,16 @@ class MixConfig(Section):
                                        "out, 1: all of it)", changes_results=False)
 
 
+def Component(key: str) -> Any:
+    """The annotation of the component section ``key``: its component's typed Config, picked by ``name``."""
+    return Annotated[SerializeAsAny[ComponentConfig], BeforeValidator(lambda v: typed_section(key, v))]
+
+
+def _given_json(section: BaseModel) -> dict:
+    """A typed component section as plain data, the settings it was given only (nested sections too)."""
+    return section.model_dump(mode="json", exclude_unset=True)
+
+
 class RunConfig(Section):
     """The top-level keys of a run's config, with the sections as nested models."""
 
@@ -420,11 +427,22 @@ class RunConfig(Section):
     trainer: TrainerConfig = Field(default_factory=TrainerConfig)
     experiment: ExperimentConfig = Field(default_factory=ExperimentConfig)
     logger: LoggerConfig = Field(default_factory=LoggerConfig)
-    # component sections: checked against the component they name (see validate_components)
-    data: dict[str, Any] = Field(default_factory=lambda: {"kind": "h3ds"})
-    backbone: dict[str, Any] = Field(default_factory=lambda: {"name": "volsdf"})
-    encoding: dict[str, Any] = Field(default_factory=lambda: {"name": "grid"})
-    guidance: dict[str, Any] = Field(default_factory=lambda: {"name": "clip"})
+    # component sections: each typed as the Config of the component its ``name`` picks (config.sections)
+    data: Component("data") = Field(default_factory=lambda: {"name": "h3ds"}, validate_default=True)
+    backbone: Component("backbone") = Field(default_factory=lambda: {"name": "volsdf"}, validate_default=True)
+    encoding: Component("encoding") = Field(default_factory=lambda: {"name": "grid"}, validate_default=True)
+    guidance: Component("guidance") = Field(default_factory=lambda: {"name": "clip"}, validate_default=True)
+    #: the validated settings as given (what ``config.yaml`` records and the cache keys hash), set by parse_config
+    _plain: Optional[dict] = PrivateAttr(default=None)
+
+    @property
+    def plain(self) -> dict:
+        """The settings as given and validated (:func:`parse_config`): what a run folder's ``config.yaml``
+        records and the cache keys hash (the component sections with only the keys that were set)."""
+        if self._plain is None:
+            self._plain = {**self.model_dump(mode="json", exclude=set(TOP_LEVEL)),
+                           **{k: _given_json(getattr(self, k)) for k in TOP_LEVEL}}
+        return self._plain
 
 
 
@@ -500,7 +518,15 @@ def _merge(original: Any, coerced: Any) -> Any:
     return original if same_kind and original == coerced else coerced
 
 
-def check_settings(c: dict) -> dict:
+def _check(model: type[BaseModel], values: dict, prefix: str) -> tuple[dict, list[Issue]]:
+    """Validate ``values`` against ``model``: (coerced values that were given, issues)."""
+    try:
+        return model.model_validate(values).model_dump(exclude_unset=True, exclude=set(TOP_LEVEL)), []
+    except ValidationError as exc:
+        return values, issues_from(exc, model, values, prefix)
+
+
+def _check_settings(c: dict) -> dict:
     """Check every setting of the composed config ``c`` (a plain dict).
 
     Returns:
@@ -511,28 +537,38 @@ def check_settings(c: dict) -> dict:
     if not isinstance(c, dict):
         raise ConfigError(f"the config must be a mapping of settings, not {type(c).__name__}")
     c = {k: v for k, v in c.items() if k != "hydra"}
-    issues: list[Issue] = []
-    coerced, issues = _check(RunConfig, c, "")
+    fixed = {k: v for k, v in c.items() if k not in TOP_LEVEL}
+    coerced, issues = _check(RunConfig, fixed, "")
     out = _merge(c, coerced)
-    for section, check in COMPONENTS.items():
-        if section in c:
-            values, more = check(c[section])
-            out[section] = _merge(c[section], values)
+    for key in TOP_LEVEL:
+        if key in c:
+            values, more = check_section(key, c[key])
+            out[key] = _merge(c[key], values)
             issues += more
     if not issues:
-        issues = cross_checks(RunConfig.model_validate(out).model_dump() | {k: out[k] for k in COMPONENTS if k in out})
+        issues = cross_checks(RunConfig.model_validate(out).model_dump(exclude=set(TOP_LEVEL))
+                              | {k: out[k] for k in TOP_LEVEL if k in out})
     raise_issues(issues)
     return out
 
 
 def parse_config(c: Any) -> tuple[RunConfig, dict]:
-    """:func:`check_settings` of ``c`` (a dict or DictConfig), typed: ``(RunConfig, the plain validated dict)``.
+    """The one validation of a run's config: every setting of ``c`` (a dict, DictConfig or RunConfig) checked
+    before any data, weights or training is touched: types, ranges, choices, unknown keys (one ConfigError listing
+    every violation, ``key=value: allowed (how to turn it off)``), each component section by its component's
+    Config. Returns ``(RunConfig, the plain validated dict)``.
 
-    The dict is what a run folder's ``config.yaml`` records; the RunConfig is what code reads
-    (``cfg.reconstruct.steps``; the component sections stay dicts: ``cfg.backbone["name"]``).
+    The dict is what a run folder's ``config.yaml`` records (also ``RunConfig.plain``); the RunConfig is what
+    code reads (``cfg.reconstruct.steps``, ``cfg.backbone.name``: each component section typed as its
+    component's Config). A RunConfig is returned as it is. This is the one validation of a config; the pipeline
+    adds the checks that depend on the stage (:func:`nerfart_plugin.run.pipeline.check_stage`).
     """
-    plain = check_settings(to_plain(c))
-    return RunConfig.model_validate(plain), plain
+    if isinstance(c, RunConfig):
+        return c, c.plain
+    plain = _check_settings(to_plain(c))
+    run = RunConfig.model_validate(plain)
+    run._plain = plain
+    return run, plain
 
 
 # ---------------------------------------------------------------------- the one DictConfig -> dict helper
@@ -565,9 +601,10 @@ def result_settings(section: BaseModel) -> dict[str, Any]:
 
 def component_result_settings(section: str, values: dict) -> dict[str, Any]:
     """A component section (``data``, ...) without its ``changes_results=False`` settings."""
-    if section != "data" or "kind" not in values:
+    name = values.get("name", values.get("kind"))  # kind: the settings format 1 (config.migrate)
+    if section != "data" or name is None:
         return dict(values)
-    fields = data_model(values["kind"]).model_fields
+    fields = section_model("data", name).model_fields
     return {k: v for k, v in values.items() if k not in fields or changes_results(fields[k])}
 
 

@@ -14,13 +14,21 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
-from pydantic import BeforeValidator, Field
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field
 from pydantic.fields import FieldInfo
 
 __all__ = [
-    "Color", "PathText", "Setting", "changes_results", "Limits", "Int", "Float", "Width", "Depth", "Fraction", "PositiveFloat", "Resolution", "Seed",
+    "SettingsModel", "Color", "PathText", "Setting", "changes_results", "Limits", "Int", "Float", "Width", "Depth", "Fraction", "PositiveFloat", "Resolution", "Seed",
     "HoldoutEvery", "MAX_WIDTH", "MAX_DEPTH",
 ]
+
+class SettingsModel(BaseModel):
+    """The one base of every settings model (the run's sections and the components' Configs): unknown keys
+    refused, numbers finite, fields named freely (``model``, ``model_overrides``)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, arbitrary_types_allowed=True,
+                              protected_namespaces=())
+
 
 #: constraints inside ``Annotated[...]`` (pydantic's ``Field``, named apart from the project's field classes)
 Limits = Field

@@ -29,12 +29,12 @@ log = logging.getLogger(__name__)
 DEFAULT_SCENE = Path(__file__).resolve().parents[1] / "assets" / "head"
 
 #: keys of the data config the datamodule reads itself; every other key goes to the loader
-_DM_KEYS = {"kind", "name", "path", "ndc", "background_color", "subject", "cache_root", "_target_"}
+_DM_KEYS = {"name", "path", "ndc", "background_color", "subject", "cache_root", "_target_"}
 _NAMED_COLORS = {"white": (1.0, 1.0, 1.0), "black": (0.0, 0.0, 0.0)}
 
 
 def default_scene_path() -> Path:
-    """Folder of the shipped default scene (loadable with ``kind="h3ds"``)."""
+    """Folder of the shipped default scene (loadable with ``name="h3ds"``)."""
     return DEFAULT_SCENE
 
 
@@ -52,7 +52,7 @@ class _ViewDataset(Dataset):
 class SceneDataModule:
     """The scene of a ``data`` config.
 
-    Config keys: ``kind`` ("h3ds"), ``path`` (None: the shipped default head scene, h3ds only),
+    Config keys: ``name`` (the loader, "h3ds"), ``path`` (None: the shipped default head scene, h3ds only),
     ``ndc`` (None = auto: true for forward-facing scenes), ``background_color`` ([r, g, b] in [0, 1],
     white | black, or None = no compositing; default white), ``subject`` (for the stylization),
     ``cache_root`` (the loaders' cache folder; the pipeline: ``<output_root>/cache``); every other key
@@ -63,7 +63,7 @@ class SceneDataModule:
     def __init__(self, cfg: Optional[dict] = None, **overrides: Any) -> None:
         cfg = {**to_plain(cfg), **overrides}
         self.cfg = cfg
-        self.kind = cfg.get("kind") or cfg.get("name") or "h3ds"
+        self.kind = cfg.get("name") or "h3ds"
         self.path = cfg.get("path")
         if self.path is None:
             if self.kind != "h3ds":
@@ -125,3 +125,10 @@ class SceneDataModule:
         scene = self.load()
         ids = scene.val_ids or scene.train_ids[:1]
         return DataLoader(_ViewDataset(self, ids), batch_size=None, num_workers=0)
+
+
+def datamodule_of(cfg: Any, cache_root: Optional[Path] = None) -> "SceneDataModule":
+    """The datamodule of a run's ``data`` section (``cfg``: a RunConfig), behind ``render.background_color`` unless
+    ``data.background_color`` says otherwise; ``cache_root``: the loaders' cache folder (selfie frames, SfM)."""
+    return SceneDataModule({"background_color": cfg.render.background_color, **cfg.plain["data"],
+                            **({"cache_root": str(cache_root)} if cache_root is not None else {})})

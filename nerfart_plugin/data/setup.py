@@ -113,7 +113,7 @@ def pixels_per_unit(scene: Scene, ndc: bool) -> float:
 
 
 def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: bool,
-                 opacity_scores: bool = False, encoding_cfg: Optional[dict[str, Any]] = None,
+                 opacity_scores: bool = False, encoding_cfg: Any = None,
                  reconstruct_cfg: ReconstructConfig | dict[str, Any] | None = None) -> SceneSetup:
     """Pick extent/background/sampling for ``scene`` from its capture type and resolution
     (``render_cfg``: the ``render`` section, typed or as a dict of its keys; ``opacity_scores``: the
@@ -188,8 +188,9 @@ def decide_setup(scene: Scene, render_cfg: RenderConfig | dict[str, Any], ndc: b
         num_samples = occ.weighted_samples
         reasons.append(f"{num_samples} samples per ray (render.occupancy.weighted_samples): weighted sampling "
                        "crowds them where rays end")
-    grid_levels = _grid_levels(encoding_cfg or {}, opacity_scores, reasons)
-    grid_res = _grid_resolution(scene, ndc, bound, encoding_cfg or {}, reasons)
+    encoding = dict(encoding_cfg or {})  # a typed section or a mapping: its settings
+    grid_levels = _grid_levels(encoding, opacity_scores, reasons)
+    grid_res = _grid_resolution(scene, ndc, bound, encoding, reasons)
     matte_fraction = _matte_fraction(scene)
     mask_share = _mask_ray_share(matte_fraction, section(ReconstructConfig, reconstruct_cfg), reasons)
     setup = SceneSetup(scene.capture, bound, background_model, background_color, ndc, occ_res, num_samples,

@@ -5,9 +5,10 @@ Importing this package registers the ``encoding`` and ``backbone`` components.
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any
 
-from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.config import registry
+from nerfart_plugin.config.sections import typed_section
 from nerfart_plugin.fields import encodings, nerf, neus, volsdf  # noqa: F401  (registration)
 from nerfart_plugin.fields.background import EnvironmentMap, build_background
 from nerfart_plugin.fields.field import Field
@@ -25,24 +26,18 @@ __all__ = [
 ]
 
 
-def occupancy_scores_opacity(backbone_cfg: dict[str, Any]) -> bool:
-    """Whether the occupancy grid of ``backbone_cfg``'s field (its ``name``) scores cells by opacity
-    (``Field.occupancy_threshold`` None: density fields), which weighted sampling reads as a proposal;
-    SDF fields score a shell around the surface instead."""
-    from nerfart_plugin.config import registry
-
-    name = (backbone_cfg or {}).get("name")
-    return name is not None and registry.get("backbone", str(name)).occupancy_threshold is None
+def occupancy_scores_opacity(backbone_cfg: Any) -> bool:
+    """Whether the occupancy grid of ``backbone_cfg``'s field (the ``backbone`` section: typed or a mapping)
+    scores cells by opacity (``Field.occupancy_threshold`` None: density fields), which weighted sampling reads as
+    a proposal; SDF fields score a shell around the surface instead."""
+    backbone = typed_section("backbone", backbone_cfg)
+    return registry.get("backbone", backbone.name).occupancy_threshold is None
 
 
-def build_field(backbone_cfg: dict[str, Any], encoding_cfg: Optional[dict[str, Any]] = None, bound: float = 1.0) -> Field:
-    """Build a backbone (``backbone_cfg["name"]`` in nerf|volsdf|neus, other keys its settings, checked by its
-    ``Config``) on an encoding (``encoding_cfg["name"]`` in frequency|grid, other keys its settings)."""
-    from nerfart_plugin.config import registry
-
-    cfg = dict(backbone_cfg or {})
-    name = cfg.pop("name", None)
-    if name is None:
-        raise ConfigError("backbone config has no 'name'; set backbone.name to one of: " + ", ".join(registry.names("backbone")))
-    cls = registry.get("backbone", str(name))
-    return cls(cfg, encoding_cfg=dict(encoding_cfg) if encoding_cfg else None, bound=bound)
+def build_field(backbone_cfg: Any, encoding_cfg: Any = None, bound: float = 1.0) -> Field:
+    """Build a backbone (the ``backbone`` section, typed or a mapping: ``name`` in nerf|volsdf|neus, the other keys
+    its settings, checked by its ``Config``) on an encoding (the ``encoding`` section: ``name`` in frequency|grid,
+    the other keys its settings)."""
+    backbone = typed_section("backbone", backbone_cfg)
+    cls = registry.get("backbone", backbone.name)
+    return cls(backbone, encoding_cfg=encoding_cfg, bound=bound)

@@ -18,7 +18,9 @@ from nerfart_plugin.config.components import ComponentConfig
 from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.data.setup import AUTO_CELL_PIXELS, AUTO_GRID_MIN
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.config import registry
 from nerfart_plugin.config.registry import register
+from nerfart_plugin.config.sections import typed_section
 
 __all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "build_encoding",
            "level_sides"]
@@ -266,13 +268,8 @@ class SHEncoding(Encoding):
         return torch.stack(out, -1)
 
 
-def build_encoding(cfg: dict | None, bound: float = 1.0) -> Encoding:
-    """Build an encoding from ``{"name": <registered name>, **kwargs}`` (also accepts ``type``/``otype`` as the key)."""
-    from nerfart_plugin.config import registry
-
-    cfg = dict(cfg or {"name": "frequency"})
-    name = cfg.pop("name", None) or cfg.pop("type", None) or cfg.pop("otype", None)
-    if name is None:
-        raise ConfigError("encoding config has no 'name'; set encoding.name to one of: " + ", ".join(registry.names("encoding")))
-    cls = registry.get("encoding", str(name))
-    return cls(cfg, bound=bound)
+def build_encoding(cfg: Any = None, bound: float = 1.0) -> Encoding:
+    """Build an encoding from its section (typed or ``{"name": <registered name>, **its settings}``; None: the
+    frequency encoding's defaults)."""
+    encoding = typed_section("encoding", cfg if cfg is not None else {"name": "frequency"})
+    return registry.get("encoding", encoding.name)(encoding, bound=bound)

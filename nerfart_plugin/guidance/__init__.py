@@ -28,7 +28,7 @@ from torch import nn
 
 from nerfart_plugin.config import registry
 from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", "toy")
-from nerfart_plugin.config.components import config_of
+from nerfart_plugin.config.sections import typed_section
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
@@ -66,28 +66,19 @@ __all__ = [
 ]
 
 
-def _common(cfg: Any) -> tuple[Any, dict[str, Any]]:
-    """The keys every guidance shares (typed: :class:`~nerfart_plugin.config.sections.GuidanceCommon`) and the config."""
-    from nerfart_plugin.config.sections import GuidanceCommon
-    from nerfart_plugin.config.schema import section, to_plain
-
-    c = to_plain(cfg)
-    return section(GuidanceCommon, c, prefix="guidance"), c
-
-
 def build_guidance(cfg: Any) -> Guidance:
-    """Build the guide named ``cfg["name"]`` from its sub-section (``guidance.<name>``, checked by its ``Config``)
-    and the section's weights policy."""
-    common, c = _common(cfg)
-    cls = registry.get("guidance", common.name)  # ConfigError listing valid names
-    return cls(c.get(config_of(cls).key()), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
+    """Build the guide of the ``guidance`` section (``cfg``: typed or a mapping; ``name`` picks the guide, its
+    settings are the section's, checked by its ``Config``) with the section's weights policy."""
+    g = typed_section("guidance", cfg)
+    cls = registry.get("guidance", g.name)
+    return cls(g, policy=WeightsPolicy(g.allow_random_weights, g.allow_download))
 
 
 def build_perceptual(cfg: Any) -> nn.Module:
     """The feature network of Eq. 9 (registry kind ``perceptual``: ``vgg`` :class:`Perceptual`, ``edges``
     :class:`EdgePerceptual`, ``imagenet`` Lite0's first stages): ``guidance.perceptual``, else the guide's
     ``default_perceptual``. Each exposes ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
-    common, c = _common(cfg)
-    kind = common.perceptual or registry.get("guidance", common.name).default_perceptual
-    cls = registry.get("perceptual", kind)
-    return cls(c.get(config_of(cls).key()), policy=WeightsPolicy(common.allow_random_weights, common.allow_download))
+    g = typed_section("guidance", cfg)
+    p = g.perceptual or typed_section("guidance.perceptual", registry.get("guidance", g.name).default_perceptual)
+    cls = registry.get("perceptual", p.name)
+    return cls(p, policy=WeightsPolicy(g.allow_random_weights, g.allow_download))

@@ -118,7 +118,7 @@ class CLIPGuidance(Guidance):
     name = "clip"
 
     class Config(ComponentConfig):
-        section: ClassVar[str] = "guidance.clip"
+        section: ClassVar[str] = "guidance"
 
         model: str = Setting("ViT-B-32", description="open_clip architecture (open_clip.list_models()); paper: ViT-B-32")
         pretrained: Optional[str] = Setting(
@@ -151,12 +151,12 @@ class CLIPGuidance(Guidance):
 
         if model not in open_clip.list_models():
             raise ConfigError(
-                f"guidance.clip.model={model!r} is not an open_clip model; "
+                f"guidance.model={model!r} is not an open_clip model; "
                 f"choose one of open_clip.list_models(), e.g. 'ViT-B-32' (paper)."
             )
         if resize_mode not in ("squash", "shortest"):
-            raise ConfigError(f"guidance.clip.resize_mode={resize_mode!r}; use 'squash' or 'shortest'")
-        self.precision = check_precision(precision, "guidance.clip.precision")
+            raise ConfigError(f"guidance.resize_mode={resize_mode!r}; use 'squash' or 'shortest'")
+        self.precision = check_precision(precision, "guidance.precision")
         if isinstance(pretrained, str) and pretrained.strip().lower() in ("", "none", "null", "random"):
             pretrained = None
         self.model_name = model
@@ -185,16 +185,16 @@ class CLIPGuidance(Guidance):
                 if not isinstance(exc, (RuntimeError, OSError, KeyError, ValueError)):
                     raise
                 raise ConfigError(
-                    f"Could not build open_clip model {model!r} with guidance.clip.model_overrides={overrides}: {exc}"
+                    f"Could not build open_clip model {model!r} with guidance.model_overrides={overrides}: {exc}"
                 ) from exc
             raise WeightsMissingError(
                 f"CLIP checkpoint {checkpoint} could not be loaded into model {model!r} "
                 f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else 'no detail'}). It must be CLIP "
                 "weights that open_clip reads (OpenAI's ViT-B-32.pt, an open_clip .bin or .safetensors) for the "
-                "architecture guidance.clip.model names; a damaged download, another model's checkpoint or a "
+                "architecture guidance.model names; a damaged download, another model's checkpoint or a "
                 "run's final.ckpt is not. Re-download it "
                 f"(python -c \"import open_clip; open_clip.create_model_and_transforms('{model}', "
-                f"pretrained='{pretrained}')\") or point guidance.clip.pretrained at the right file."
+                f"pretrained='{pretrained}')\") or point guidance.pretrained at the right file."
             ) from exc
         self.is_real = checkpoint is not None
         if not self.is_real:
@@ -237,7 +237,7 @@ class CLIPGuidance(Guidance):
         if pretrained is None:
             if not allow_random:
                 raise ConfigError(
-                    f"guidance.clip.pretrained is empty for model {model!r}: set it to a tag such as 'openai' "
+                    f"guidance.pretrained is empty for model {model!r}: set it to a tag such as 'openai' "
                     "or a checkpoint path; random weights need guidance.allow_random_weights=true (tests only)."
                 )
             return None, None
@@ -248,13 +248,13 @@ class CLIPGuidance(Guidance):
                 return path, None
             if wts.looks_like_path(pretrained):
                 msg = (
-                    f"CLIP checkpoint file not found: guidance.clip.pretrained={pretrained!r} (model {model!r}); "
+                    f"CLIP checkpoint file not found: guidance.pretrained={pretrained!r} (model {model!r}); "
                     f"looked at {os.path.abspath(path)}. Fix the path, or use a tag such as 'openai' "
                     f"(tags for {model}: {open_clip.list_pretrained_tags_by_model(model)})."
                 )
             else:
                 raise ConfigError(
-                    f"guidance.clip.pretrained={pretrained!r} is neither a known open_clip tag for {model!r} "
+                    f"guidance.pretrained={pretrained!r} is neither a known open_clip tag for {model!r} "
                     f"({open_clip.list_pretrained_tags_by_model(model)}) nor an existing file."
                 )
             if allow_random:
@@ -297,11 +297,11 @@ class CLIPGuidance(Guidance):
 
     def compute_dtype(self, device: torch.device) -> torch.dtype:
         """The dtype image encoding runs in on ``device`` (see ``precision``)."""
-        return compute_dtype(self.precision, device, "guidance.clip.precision")
+        return compute_dtype(self.precision, device, "guidance.precision")
 
     def auto_choices(self, device: torch.device) -> dict[str, str]:
-        """What ``guidance.clip.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.config.auto`)."""
-        return {"guidance.clip.precision": dtype_name(self.compute_dtype(device))}
+        """What ``guidance.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.config.auto`)."""
+        return {"guidance.precision": dtype_name(self.compute_dtype(device))}
 
     def _net_image(self, x: Tensor) -> Tensor:
         """The image tower on preprocessed ``x`` [B,3,S,S] in ``compute_dtype``; float32 [B,D]."""

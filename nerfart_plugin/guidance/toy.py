@@ -88,7 +88,7 @@ class ToyGuidance(Guidance):
     is_real = False
 
     class Config(ComponentConfig):
-        section: ClassVar[str] = "guidance.toy"
+        section: ClassVar[str] = "guidance"
 
         num_structure: Annotated[Int, Limits(ge=0, le=1024)] = Setting(
             8, description="structure (edge projection) dimensions of the embedding")

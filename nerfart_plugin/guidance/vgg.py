@@ -54,7 +54,7 @@ for _b, _n in enumerate(_blocks, start=1):
 del _blocks, _idx, _b, _n, _c
 
 DEFAULT_LAYERS: tuple[str, ...] = ("relu1_2", "relu2_2", "relu3_3", "relu4_3")
-#: a layer name of :data:`VGG16_LAYERS` (the type of ``guidance.vgg.layers`` items)
+#: a layer name of :data:`VGG16_LAYERS` (the type of ``guidance.perceptual.layers`` items)
 VGGLayer = Literal[tuple(VGG16_LAYERS)]  # type: ignore[valid-type]
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -78,14 +78,14 @@ def _vgg_state_dict(weights: str, allow_download: bool | None) -> dict[str, Tens
                 "How to supply them: on a machine with internet run\n"
                 "  python -c \"import torchvision; torchvision.models.vgg16(weights='DEFAULT')\"\n"
                 f"and copy {path.name} to {ckpt_dir} (or set TORCH_HOME), or download {url} and pass "
-                "guidance.vgg.weights=/path/to/vgg16.pth. Tests only: guidance.allow_random_weights=true."
+                "guidance.perceptual.weights=/path/to/vgg16.pth. Tests only: guidance.allow_random_weights=true."
             )
     else:
         path = Path(weights).expanduser()
         if not path.is_file():
             raise WeightsMissingError(
-                f"VGG16 weights file not found: guidance.vgg.weights={weights!r} (looked at {path.resolve()}). "
-                "Fix the path or use guidance.vgg.weights=DEFAULT."
+                f"VGG16 weights file not found: guidance.perceptual.weights={weights!r} (looked at {path.resolve()}). "
+                "Fix the path or use guidance.perceptual.weights=DEFAULT."
             )
     try:
         return torch.load(path, map_location="cpu", weights_only=True)
@@ -109,7 +109,7 @@ class Perceptual(nn.Module):
     name = "vgg16"
 
     class Config(ComponentConfig):
-        section: ClassVar[str] = "guidance.vgg"
+        section: ClassVar[str] = "guidance.perceptual"
 
         weights: Optional[str] = Setting(
             "DEFAULT", description="DEFAULT (torchvision's ImageNet weights) or a local .pth file")
@@ -118,7 +118,7 @@ class Perceptual(nn.Module):
         max_size: Optional[Annotated[Int, Limits(ge=16, le=8192)]] = Setting(
             None, description="views with a longer side are downscaled (antialiased) to it first; null: as they are")
         precision: Precision = Setting(
-            "auto", description="the trunk's arithmetic, as guidance.clip.precision (features returned in float32)")
+            "auto", description="the trunk's arithmetic, as guidance.precision (features returned in float32)")
 
     def __init__(self, cfg: Optional[Any] = None, *, policy: Optional[WeightsPolicy] = None, **options: Any) -> None:
         c = self.Config.build(cfg, **options)
@@ -129,13 +129,13 @@ class Perceptual(nn.Module):
         self.cfg = c
         from torchvision.models.vgg import cfgs, make_layers
 
-        self.precision = check_precision(precision, "guidance.vgg.precision")
+        self.precision = check_precision(precision, "guidance.perceptual.precision")
 
         layers = list(layers)
         bad = [n for n in layers if n not in VGG16_LAYERS]
         if bad or not layers:
             raise ConfigError(
-                f"guidance.vgg.layers has unknown names {bad or '(empty)'}; valid: {', '.join(VGG16_LAYERS)}"
+                f"guidance.perceptual.layers has unknown names {bad or '(empty)'}; valid: {', '.join(VGG16_LAYERS)}"
             )
         self.layers = layers
         self.max_size = max_size
@@ -145,7 +145,7 @@ class Perceptual(nn.Module):
         if weights is None:
             if not allow_random_weights:
                 raise ConfigError(
-                    "guidance.vgg.weights is empty: use DEFAULT or a .pth path; random weights need "
+                    "guidance.perceptual.weights is empty: use DEFAULT or a .pth path; random weights need "
                     "guidance.allow_random_weights=true (tests only)."
                 )
         else:
@@ -166,8 +166,8 @@ class Perceptual(nn.Module):
                 feats.load_state_dict(sub, strict=True)
             except RuntimeError as exc:
                 raise WeightsMissingError(
-                    f"guidance.vgg.weights={weights!r} does not hold torchvision VGG16 weights ({exc}); "
-                    "use guidance.vgg.weights=DEFAULT or a vgg16 .pth state dict."
+                    f"guidance.perceptual.weights={weights!r} does not hold torchvision VGG16 weights ({exc}); "
+                    "use guidance.perceptual.weights=DEFAULT or a vgg16 .pth state dict."
                 ) from exc
         self.is_real = state is not None
         if not self.is_real:
@@ -188,11 +188,11 @@ class Perceptual(nn.Module):
 
     def compute_dtype(self, device: torch.device) -> torch.dtype:
         """The dtype the trunk runs in on ``device`` (see ``precision``)."""
-        return compute_dtype(self.precision, device, "guidance.vgg.precision")
+        return compute_dtype(self.precision, device, "guidance.perceptual.precision")
 
     def auto_choices(self, device: torch.device) -> dict[str, str]:
-        """What ``guidance.vgg.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.config.auto`)."""
-        return {"guidance.vgg.precision": dtype_name(self.compute_dtype(device))}
+        """What ``guidance.perceptual.precision=auto`` becomes on ``device`` (:mod:`nerfart_plugin.config.auto`)."""
+        return {"guidance.perceptual.precision": dtype_name(self.compute_dtype(device))}
 
     def features(self, img: Tensor) -> list[Tensor]:
         """``img`` [B,3,H,W] in [0,1] -> activations of ``self.layers`` (in that order),
@@ -228,7 +228,7 @@ class EdgePerceptual(nn.Module):
     is_real = False
 
     class Config(ComponentConfig):
-        section: ClassVar[str] = "guidance.edges"
+        section: ClassVar[str] = "guidance.perceptual"
 
         num_scales: Annotated[Int, Limits(ge=1, le=8)] = Setting(3, description="scales, each half the previous")
 

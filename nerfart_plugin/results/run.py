@@ -11,12 +11,18 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 import torch
+import yaml
 
 from nerfart_plugin.systems.checkpoints import META_KEY, load_checkpoint, prefixed_state
 from nerfart_plugin.cameras.capture import CaptureCameras, scale_intrinsics
 from nerfart_plugin.cameras.path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
 from nerfart_plugin.errors import ConfigError, NerfArtError
-from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.config.migrate import to_current
+from nerfart_plugin.config.schema import RunConfig, parse_config
+from nerfart_plugin.data.datamodule import datamodule_of
+from nerfart_plugin.results.record import RunRecord, migrate
+from nerfart_plugin.systems.base import build_renderer
+from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.data.setup import SceneSetup
 
 log = logging.getLogger("nerfart_plugin")
@@ -30,7 +36,7 @@ class Run:
 
     Attributes:
         folder: the run folder; checkpoint: the checkpoint read.
-        kind: "reconstruction" or "stylization".
+        kind: "reconstruction" or "stylization"; record: its ``run.json`` (:mod:`nerfart_plugin.results.record`).
         config: its typed config; metrics: its ``metrics.json``.
         renderer: the trained renderer (eval mode, on ``device``).
         cameras: the capture's cameras (normalized frame; from ``cameras.json``, else from the data).
@@ -50,6 +56,7 @@ class Run:
     stamp: str = ""
     weights: tuple[float, ...] = (1.0,)
     mixed: tuple[str, ...] = ()
+    record: Optional[RunRecord] = None
     _source: Optional["Run"] = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ what it is
@@ -68,11 +75,14 @@ class Run:
         if self.kind != "stylization":
             raise NerfArtError(f"{self.folder} is a reconstruction: it has no source run.")
         if self._source is None:
-            ckpt = self.metrics.get("source_checkpoint") or self.config.source_checkpoint
-            if not ckpt or not Path(ckpt).is_file():
-                raise NerfArtError(f"{self.folder}: its source reconstruction ({ckpt or 'not recorded'}) is not on this "
-                                   "machine; copy that reconstruction folder back, or render without side.")
-            self._source = open_run(Path(ckpt).parent, Path(ckpt).name, device=str(self.device))
+            record = self.record or RunRecord.read(self.folder)
+            found = record.source_folder(self.folder)
+            if found is None or not (found / "final.ckpt").is_file():
+                where = " or ".join(dict.fromkeys(str(v) for v in record.source.values())) or "not recorded"
+                raise NerfArtError(f"{self.folder}: its source reconstruction ({where}) is not on this machine. "
+                                   "Copy that reconstruction folder back (beside this run's stylizations/ folder, "
+                                   "under reconstructions/), then run the same command again.")
+            self._source = open_run(found, device=str(self.device))
         return self._source
 
     @property
@@ -95,9 +105,7 @@ class Run:
     def scene(self):
         """The capture again (:class:`~nerfart_plugin.data.scene.Scene`: photos, masks, cameras), loaded
         from the run's ``data`` settings (the data must be where the run found it)."""
-        from nerfart_plugin.run.factories import build_scene
-
-        return build_scene(self.config).scene
+        return datamodule_of(self.config).load()
 
     # ------------------------------------------------------------------ cameras
     def camera_path(self, path: Union[str, RenderPath] = "orbit", frames: int = 120, resolution: Optional[int] = None,
@@ -255,23 +263,20 @@ class _RunFolder:
 def _read_run_folder(run_dir: Path | str, checkpoint: str = "final.ckpt") -> _RunFolder:
     """Read a reconstruction or stylization folder: ``config.yaml``, ``metrics.json`` and the renderer of
     ``checkpoint`` (``last.ckpt`` for an unfinished run), rebuilt from the checkpoint's model record."""
-    from omegaconf import OmegaConf
-
-    from nerfart_plugin.run.factories import build_renderer, typed
-
     path = Path(run_dir)
     ckpt_path = path / checkpoint
     if not (path / "config.yaml").is_file() or not ckpt_path.is_file():
         raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
                            "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
-    cfg, _ = typed(OmegaConf.load(path / "config.yaml"))
+    cfg = read_config(path / "config.yaml")
     ckpt = load_checkpoint(ckpt_path, fix=f"If {ckpt_path.name} was damaged, run the command that made this run "
                                           "again: it sets the damaged file aside and trains again from the run's "
                                           "last.ckpt (nothing else in the folder is touched).")
     meta = ckpt.get(META_KEY)
     if not isinstance(meta, dict) or "setup" not in meta:
         raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "
-                           "with factories.build_scene(cfg) and factories.load_renderer_state(checkpoint, scene).")
+                           "with nerfart_plugin.run.factories.build_scene(cfg) and load_renderer_state(checkpoint, "
+                           "scene).")
     setup = SceneSetup(**meta["setup"])
     renderer = build_renderer(cfg, setup)
     renderer.load_state_dict(prefixed_state(ckpt, "renderer."))
@@ -288,25 +293,41 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         checkpoint: the checkpoint to read (``last.ckpt`` for an unfinished run).
         device: auto (CUDA, then MPS, then CPU) | cpu | cuda | cuda:N | mps.
     """
-    from nerfart_plugin.run.factories import build_scene
-    from nerfart_plugin.utils.device import pick_device
-
     folder = Path(folder).expanduser()
     if folder.suffix == ".ckpt":
         folder, checkpoint = folder.parent, folder.name
     loaded = _read_run_folder(folder, checkpoint)
+    record = migrate(folder)
     cfg = loaded.cfg
-    kind = "stylization" if (loaded.metrics.get("prompt") is not None or folder.parent.name == "stylizations") \
-        else "reconstruction"
     cams_file = folder / "cameras.json"
     if cams_file.is_file():
         cameras = CaptureCameras.from_json(json.loads(cams_file.read_text()))
     else:  # a run written before cameras.json: the cameras from the data
-        log.info("%s has no cameras.json: reading the cameras from its data (%s)", folder, cfg.data.get("path"))
-        cameras = build_scene(cfg).cameras
+        log.info("%s has no cameras.json: reading the cameras from its data (%s)", folder, cfg.data.path)
+        dm = datamodule_of(cfg)
+        cameras = CaptureCameras.from_scene(dm.load(), dm.ndc)
     renderer = loaded.renderer
-    if kind == "stylization":  # rendered as the stylization was evaluated
+    if record.kind == "stylization":  # rendered as the stylization was evaluated
         renderer.reduce_samples(cfg.stylize.num_samples)
     dev = pick_device(device)
-    return Run(folder, loaded.checkpoint, kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
-               stamp=loaded.metrics.get("stamp") or "")
+    return Run(folder, loaded.checkpoint, record.kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
+               stamp=loaded.metrics.get("stamp") or "", record=record)
+
+
+def read_config(path: Path) -> RunConfig:
+    """A run folder's ``config.yaml``, in the current settings layout (a folder of an earlier layout migrates:
+    :func:`~nerfart_plugin.config.migrate.to_current`), validated. Raises NerfArtError naming the file when it is
+    not a readable config."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as exc:
+        raise NerfArtError(f"{path} cannot be read as a run's config ({type(exc).__name__}: {exc}). It is written "
+                           "when the run starts: run the command that made this run again, or restore the file.") from None
+    if not isinstance(data, dict) or not data:
+        raise NerfArtError(f"{path} holds no settings (it is empty or not a mapping). Run the command that made this "
+                           "run again, or restore the file.")
+    try:
+        return parse_config(to_current(data))[0]
+    except ConfigError as exc:
+        raise NerfArtError(f"{path} is not a valid run config: {exc}. Run the command that made this run again, or "
+                           "restore the file.") from None

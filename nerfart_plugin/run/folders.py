@@ -26,11 +26,12 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Optional, TypeVar
+from typing import Any, Callable, Optional, Sequence, TypeVar
 
 from omegaconf import OmegaConf
 
 from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, load_checkpoint
+from nerfart_plugin.results.run import Run, open_run
 from nerfart_plugin.utils.io import atomic_write_text, file_sha256
 from nerfart_plugin.utils.lock import run_lock
 
@@ -76,6 +77,22 @@ class RunFolder:
 
     path: Path
     what: str
+
+    @classmethod
+    def find(cls, parent: Path, names: Sequence[str], what: str) -> "RunFolder":
+        """The folder of the first of ``names`` (the current key's first, then those of earlier settings formats)
+        that exists under ``parent``, else the first: a run made by an earlier version is found again."""
+        for i, name in enumerate(names):
+            if (parent / name).is_dir():
+                if i:
+                    log.info("found the %s of these settings made by an earlier version: %s", what, parent / name)
+                return cls(parent / name, what)
+        return cls(parent / names[0], what)
+
+    def open(self, device: str = "auto") -> Run:
+        """The finished run in this folder (:func:`~nerfart_plugin.results.run.open_run`): what render, export,
+        preview, the viewer and the notebook work on."""
+        return open_run(self.path, device=device)
 
     @property
     def final(self) -> Path:

@@ -27,11 +27,13 @@ import torch
 from omegaconf import DictConfig
 
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
-from nerfart_plugin.run.factories import SceneContext, Style, build_scene, build_style, check_style
+from nerfart_plugin.run.factories import SceneContext, build_scene
+from nerfart_plugin.guidance.style import Style, build_style, check_style
 from nerfart_plugin.config.issues import show
 from nerfart_plugin.config.schema import RunConfig, parse_config
 from nerfart_plugin.run.stages.export import ExportStage
 from nerfart_plugin.run.stages.render import RenderStage
+from nerfart_plugin.run.stages.base import LiveViewerFactory
 from nerfart_plugin.run.stages.preview import PreviewStage
 from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 from nerfart_plugin.run.stages.stylize import StylizeStage, stylization_source
@@ -41,26 +43,10 @@ from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 log = logging.getLogger("nerfart_plugin")
 
 
-def validate_config(c: Any) -> dict:
-    """The one validation of a run's config (:class:`Pipeline`, hence the CLI, comes here): every setting
-    checked before anything is loaded (:func:`nerfart_plugin.config.schema.check_settings`: types, ranges,
-    choices, unknown keys), then what depends on the stage: multi-device only for the reconstruction,
-    a prompt for stylization, an existing ``source_checkpoint``, an available ``device``.
-
-    Returns the config (a plain dict) with the values validation converted (``"512"`` -> 512).
-    """
-    return validated(c)[1]
-
-
-def validated(c: Any) -> tuple[RunConfig, dict]:
-    """:func:`validate_config`, typed: ``(RunConfig, the plain validated dict)``."""
-    run, plain = parse_config(c)
-    check_stage(run)
-    return run, plain
-
-
 def check_stage(c: RunConfig) -> None:
-    """The checks that depend on the stage (see :func:`validate_config`)."""
+    """The checks that depend on the stage, after the config's own (:func:`~nerfart_plugin.config.schema.parse_config`):
+    multi-device only for the reconstruction, a prompt for stylization, an existing ``source_checkpoint``, an
+    available ``device``."""
     tc = c.trainer
     plan = PLANS[c.stage]
     if (tc.strategy != "auto" or tc.num_nodes != 1 or tc.devices != 1) and not plan.multi_device:
@@ -109,8 +95,10 @@ class Pipeline:
         scene_context: the loaded scene (after :meth:`load_data`).
     """
 
-    def __init__(self, cfg: DictConfig | dict) -> None:
-        self.cfg, self.plain = validated(cfg)
+    def __init__(self, cfg: DictConfig | dict, live: Optional[LiveViewerFactory] = None) -> None:
+        self.cfg, self.plain = parse_config(cfg)
+        check_stage(self.cfg)
+        self.live = live
         self.root = check_writable_dir(self.cfg.output_root, "output_root")
         self.results: dict[str, Any] = {"stage": self.cfg.stage}
         self.style: Optional[Style] = None
@@ -127,7 +115,7 @@ class Pipeline:
     def load_data(self) -> None:
         """Load the scene and decide its setup; the reconstruction's run folder follows from them."""
         self.scene_context = build_scene(self.cfg)
-        self.recon = ReconstructStage(self.scene_context)
+        self.recon = ReconstructStage(self.scene_context, self.live)
 
     @property
     def scene(self):
@@ -154,13 +142,13 @@ class Pipeline:
 
     def stylize(self, stage: type[StylizeStage] = StylizeStage, name: str = "stylization") -> Path:
         """Stage 2 (a finished stylization is not redone); returns its ``final.ckpt``."""
-        source, source_key = stylization_source(self._loaded(), self.recon)
+        source, source_keys = stylization_source(self._loaded(), self.recon)
         if not self.cfg.source_checkpoint and "reconstruction" not in self.results:  # not verified by this run yet
             self.recon.folder.set_aside_if_damaged()
         if not source.exists():
             raise NerfArtError(f"No reconstruction at {source} for this data + backbone + settings. Run "
                                "stage=reconstruct (or stage=all) first, or pass source_checkpoint=/path/final.ckpt.")
-        result = stage(self.scene_context, self.style, source, source_key).run()
+        result = stage(self.scene_context, self.style, source, source_keys, self.live).run()
         self.results[name] = result.summary
         return result.checkpoint
 
@@ -171,7 +159,7 @@ class Pipeline:
     def export(self) -> None:
         """``stage=export``: meshes from ``source_checkpoint`` (or the cached reconstruction)."""
         ckpt = Path(self.cfg.source_checkpoint) if self.cfg.source_checkpoint else self.recon_dir / "final.ckpt"
-        self.results["export"] = ExportStage(self.cfg, ckpt, self._loaded()).run().summary
+        self.results["export"] = ExportStage(self.cfg, ckpt).run().summary
 
     def render(self) -> None:
         """``stage=render``: videos of ``render.run``, else of this config's finished stylization (with a prompt)
@@ -187,8 +175,8 @@ class Pipeline:
         if self.cfg.prompt is None:
             folder, what = self.recon.folder, "reconstruction"
         else:
-            source, source_key = stylization_source(self._loaded(), self.recon)
-            folder, what = StylizeStage(self.scene_context, self.style, source, source_key).folder, "stylization"
+            source, source_keys = stylization_source(self._loaded(), self.recon)
+            folder, what = StylizeStage(self.scene_context, self.style, source, source_keys).folder, "stylization"
         if not folder.finished:
             raise NerfArtError(f"stage=render: the {what} of these settings has not finished ({folder.path} has no "
                                "final.ckpt). Run it first (stage=all, the same settings), or point render.run= at a "
@@ -275,10 +263,11 @@ PLANS: dict[str, StagePlan] = {
 }
 
 
-def run(cfg: DictConfig | dict, output_dir: Optional[Path] = None) -> dict[str, Any]:
+def run(cfg: DictConfig | dict, output_dir: Optional[Path] = None,
+        live: Optional[LiveViewerFactory] = None) -> dict[str, Any]:
     """Entry point used by ``python -m nerfart_plugin``: runs the pipeline and writes ``result.json``
     into ``output_dir`` (the Hydra job folder; None: nowhere)."""
-    results = Pipeline(cfg).run()
+    results = Pipeline(cfg, live).run()
     if output_dir is not None:
         atomic_write_json(Path(output_dir) / "result.json", results)
     return results

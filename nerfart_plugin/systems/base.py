@@ -11,27 +11,27 @@ import torch
 from nerfart_plugin.fields import OccupancyGrid, build_background, build_field
 from nerfart_plugin.rendering import VolumeRenderer
 from nerfart_plugin.utils.device import to_device
-from nerfart_plugin.config.schema import RenderConfig, section
+from nerfart_plugin.config.schema import parse_config
+from nerfart_plugin.systems.checkpoints import META_KEY, checkpoint_meta
 from nerfart_plugin.data.setup import SceneSetup
 
 log = logging.getLogger(__name__)
 
 
-def build_renderer(backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderConfig | dict,
-                   setup: SceneSetup) -> VolumeRenderer:
-    """Field (backbone x encoding) + optional background model + occupancy grid, wrapped in the renderer.
+def build_renderer(cfg: Any, setup: SceneSetup) -> VolumeRenderer:
+    """Field (``cfg.backbone`` x ``cfg.encoding``) + optional background model + occupancy grid, wrapped in the
+    renderer (``cfg.render``'s settings).
 
-    ``render_cfg``: the ``render`` section (a :class:`RenderConfig`, or a dict: what it leaves out
-    takes the schema's defaults); ``setup`` decides the box, background, grid sizes (the occupancy grid's and,
-    for ``encoding.resolution=auto``, the grid encoding's) and samples.
+    ``cfg``: a RunConfig, or a mapping of its sections (what it leaves out takes the schema's defaults);
+    ``setup`` decides the box, background, grid sizes (the occupancy grid's and, for ``encoding.resolution=auto``,
+    the grid encoding's) and samples.
     """
-    rc = section(RenderConfig, render_cfg)
-    encoding = dict(encoding_cfg)
-    if encoding.get("resolution") == "auto" and setup.grid_resolution is not None:
-        encoding["resolution"] = setup.grid_resolution  # decided from the scene (decide_setup)
-    if encoding.get("levels") == "auto" and setup.grid_levels is not None:
-        encoding["levels"] = setup.grid_levels  # decided from the backbone (decide_setup)
-    field = build_field(dict(backbone_cfg), encoding, bound=setup.bound)
+    run, _ = parse_config(cfg)
+    rc = run.render
+    decided = {"resolution": setup.grid_resolution, "levels": setup.grid_levels}
+    encoding = run.encoding.model_copy(update={k: v for k, v in decided.items()  # decided from the scene (decide_setup)
+                                               if getattr(run.encoding, k, None) == "auto" and v is not None})
+    field = build_field(run.backbone, encoding, bound=setup.bound)
     background = build_background({"name": "envmap"}) if setup.background_model else None
     occupancy: Optional[OccupancyGrid] = None
     if setup.occupancy_resolution > 0:
@@ -113,20 +113,19 @@ class RenderSystem(L.LightningModule):
     #: stage name recorded in checkpoints
     stage: str = "render"
 
-    def __init__(self, backbone_cfg: dict, encoding_cfg: dict, render_cfg: RenderConfig | dict,
-                 setup: SceneSetup) -> None:
-        from nerfart_plugin.systems.checkpoints import checkpoint_meta
-
+    def __init__(self, cfg: Any, setup: SceneSetup) -> None:
+        """``cfg``: the run's config (a RunConfig, or a mapping of its sections: the schema's defaults for what it
+        leaves out); ``setup``: what the scene requires (:class:`~nerfart_plugin.data.setup.SceneSetup`)."""
         super().__init__()
+        self.run_cfg, _ = parse_config(cfg)
         self.setup_info = setup if isinstance(setup, SceneSetup) else SceneSetup(**setup)
-        self.render_cfg = section(RenderConfig, render_cfg)
-        self.renderer = build_renderer(backbone_cfg, encoding_cfg, self.render_cfg, self.setup_info)
+        self.render_cfg = self.run_cfg.render
+        self.renderer = build_renderer(self.run_cfg, self.setup_info)
         #: the model settings recorded in checkpoints (plain data)
-        self.model_meta: dict[str, Any] = checkpoint_meta(self.stage, backbone_cfg, encoding_cfg, self.setup_info)
+        self.model_meta: dict[str, Any] = checkpoint_meta(self.stage, self.run_cfg.backbone, self.run_cfg.encoding,
+                                                          self.setup_info)
 
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        from nerfart_plugin.systems.checkpoints import META_KEY
-
         checkpoint[META_KEY] = dict(self.model_meta)
 
     @property

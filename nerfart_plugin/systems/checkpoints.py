@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Iterator, Mapping, Optional
 
 import torch
+from pydantic import BaseModel
 
 from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
 
@@ -96,7 +97,10 @@ def checkpoint_meta(stage: str, backbone: Mapping, encoding: Mapping, setup: Any
 
 
 def _plain(obj: Any) -> Any:
-    """Dicts / lists / numbers / strings only (a tuple becomes a list)."""
+    """Dicts / lists / numbers / strings only (a tuple becomes a list; a typed section, the settings it was
+    given)."""
+    if isinstance(obj, BaseModel):
+        obj = obj.model_dump(mode="json", exclude_unset=True)
     if isinstance(obj, Mapping):
         return {str(k): _plain(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):

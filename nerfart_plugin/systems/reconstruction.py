@@ -12,7 +12,6 @@ import torch
 
 from nerfart_plugin.objectives.evaluation import view_metrics
 from nerfart_plugin.objectives.losses import psnr, reconstruction_loss, silhouette_loss
-from nerfart_plugin.config.schema import ReconstructConfig, RenderConfig, section
 from nerfart_plugin.systems.base import RenderSystem, adam, param_groups, step_seed
 from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.systems.loss_terms import (LossTerm, compute, regularizer_terms, regularizer_weights, weighted_sum,
@@ -46,17 +45,20 @@ class ReconstructionSystem(RenderSystem):
 
     stage = "reconstruct"
 
-    def __init__(self, cfg: ReconstructConfig | dict, backbone_cfg: dict, encoding_cfg: dict,
-                 render_cfg: RenderConfig | dict, setup: SceneSetup, train_rays: Optional[dict] = None, seed: int = 0,
+    def __init__(self, cfg: Any, setup: SceneSetup, train_rays: Optional[dict] = None,
                  out_dir: Optional[str] = None) -> None:
-        super().__init__(backbone_cfg, encoding_cfg, render_cfg, setup)
-        self.cfg = section(ReconstructConfig, cfg)
+        """``cfg``: the run's config (its ``reconstruct``, ``backbone``, ``encoding``, ``render`` and ``seed``;
+        see :class:`~nerfart_plugin.systems.base.RenderSystem`); ``train_rays``: the scene's training rays."""
+        super().__init__(cfg, setup)
+        c = self.run_cfg
+        self.cfg = c.reconstruct
         # hyper-parameters as plain data only (checkpoints are read with weights_only=True)
-        self.save_hyperparameters({"cfg": self.cfg.model_dump(mode="json"), "backbone_cfg": dict(backbone_cfg),
-                                   "encoding_cfg": dict(encoding_cfg), "render_cfg": self.render_cfg.model_dump(mode="json"),
-                                   "seed": int(seed), "out_dir": out_dir, "setup": self.setup_info.to_dict()})
+        self.save_hyperparameters({"cfg": self.cfg.model_dump(mode="json"), "backbone_cfg": self.model_meta["backbone"],
+                                   "encoding_cfg": self.model_meta["encoding"],
+                                   "render_cfg": self.render_cfg.model_dump(mode="json"), "seed": int(c.seed),
+                                   "out_dir": out_dir, "setup": self.setup_info.to_dict()})
         self.train_rays = train_rays
-        self.seed = int(seed)
+        self.seed = int(c.seed)
         self.out_dir = Path(out_dir) if out_dir else None
         self.total_steps = self.cfg.steps
         self.lambdas = weights_of(RECONSTRUCTION_LOSSES, self.cfg, off=() if self.setup_info.has_masks else ("mask",))

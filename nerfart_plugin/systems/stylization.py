@@ -43,9 +43,10 @@ from torch import Tensor
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.guidance import NegativeSampler, random_patches
 from nerfart_plugin.guidance.patches import subject_box
+from nerfart_plugin.guidance.style import Style, negatives_of
 from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
                                                render_with_graph)
-from nerfart_plugin.config.schema import MAX_GRAD_SAMPLES, ExperimentConfig, RenderConfig, StylizeConfig, section
+from nerfart_plugin.config.schema import MAX_GRAD_SAMPLES, StylizeConfig, section
 from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed
 from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.systems.callbacks import check_finite_grads
@@ -99,15 +100,20 @@ class StylizationSystem(RenderSystem):
 
     stage = "stylize"
 
-    def __init__(self, *, cfg: StylizeConfig | dict, experiment: ExperimentConfig | dict, backbone_cfg: dict,
-                 encoding_cfg: dict, render_cfg: RenderConfig | dict, setup: SceneSetup, source_state: dict,
-                 views: list[dict], guidance: Any, perceptual: Any, prompt: str, source_prompt: str, negatives: list,
-                 seed: int = 0, out_dir: Optional[str] = None, stamp: str = "", raw_prompt: Optional[str] = None) -> None:
-        super().__init__(backbone_cfg, encoding_cfg, render_cfg, setup)
+    def __init__(self, cfg: Any, setup: SceneSetup, style: Style, source_state: dict, views: list[dict],
+                 settings: Optional[StylizeConfig | dict] = None, out_dir: Optional[str] = None) -> None:
+        """``cfg``: the run's config (its ``experiment``, ``backbone``, ``encoding``, ``render`` and ``seed``;
+        see :class:`~nerfart_plugin.systems.base.RenderSystem`); ``style``: the guide, perceptual network and
+        prompts (:func:`~nerfart_plugin.guidance.style.build_style`); ``source_state``: the reconstruction's
+        renderer tensors; ``views``: the training views' ray batches at the stylization's resolution;
+        ``settings``: the ``stylize`` section with its ``auto`` settings resolved (default ``cfg.stylize``)."""
+        super().__init__(cfg, setup)
         self.automatic_optimization = False
-        self.cfg, self.exp = section(StylizeConfig, cfg), section(ExperimentConfig, experiment)
+        c = self.run_cfg
+        self.cfg = section(StylizeConfig, c.stylize if settings is None else settings)
+        self.exp = c.experiment
         self.renderer.load_state_dict(source_state)
-        source = build_renderer(backbone_cfg, encoding_cfg, self.render_cfg, self.setup_info)
+        source = build_renderer(c, self.setup_info)
         source.load_state_dict(source_state)
         source.requires_grad_(False).eval()
         # The reconstruction's occupancy grid already concentrates samples at the surface, so the
@@ -119,14 +125,13 @@ class StylizationSystem(RenderSystem):
             log.info("stylize.num_samples=%d ignored: no occupancy grid places the samples, so the stylization "
                      "keeps render.num_samples=%d", self.cfg.num_samples, self.renderer.num_samples)
         # Frozen helpers live outside the module tree: not trained, not checkpointed.
-        self._frozen = {"source": source, "guidance": guidance, "perceptual": perceptual}
+        self._frozen = {"source": source, "guidance": style.guidance, "perceptual": style.perceptual}
         self.views = views
-        self.prompt, self.source_prompt = prompt, source_prompt
-        self.negatives = negatives
-        self.raw_prompt = raw_prompt or prompt
-        self.seed = int(seed)
+        self.prompt, self.source_prompt, self.raw_prompt = style.prompt, style.source_prompt, style.raw_prompt
+        self.negatives = negatives_of(style, self.cfg.negatives)
+        self.seed = int(c.seed)
         self.out_dir = Path(out_dir) if out_dir else None
-        self.stamp = stamp
+        self.stamp = style.stamp
         self.total_steps = self.cfg.steps
         self.freeze_geometry = self.cfg.freeze_geometry
         if self.freeze_geometry:

@@ -22,6 +22,9 @@ import lightning as L
 import numpy as np
 import torch
 
+from nerfart_plugin.run.stages.base import LiveTarget
+from nerfart_plugin.viewer.panels import thumbnails
+
 log = logging.getLogger(__name__)
 
 #: the logged values the training panel shows, in this order (those the system logs)
@@ -239,3 +242,11 @@ def add_training_panel(viewer: Any, control: TrainingControl) -> dict[str, Any]:
     out["resume"].on_click(resume)
     out["stop"].on_click(lambda _: control.stop())
     return out
+
+
+def live_viewer(target: LiveTarget) -> LiveViewer:
+    """The live viewer of a training stage (what ``viewer.live=true`` hands the stage: its
+    :data:`~nerfart_plugin.run.stages.base.LiveViewerFactory`)."""
+    vc = target.settings
+    return LiveViewer(target.cameras, host=vc.host, port=vc.port, render_share=vc.render_share, chunk=target.chunk,
+                      folder=target.folder, title=target.title, photos=thumbnails(target.photos))

@@ -9,12 +9,19 @@ import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator, Optional
+from typing import Any, Callable, Iterator, Optional
+
+import numpy as np
 
 
+from nerfart_plugin.cameras.capture import CaptureCameras
+from nerfart_plugin.config.schema import ViewerConfig
+from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.config.auto import component_choices, recorded
 from nerfart_plugin.run.factories import (SceneContext)
 from nerfart_plugin.run.fit import FitResult, publish_final, stage_final
+from nerfart_plugin.results.run import Run, mix, open_run
+from nerfart_plugin.results.record import RunRecord, key_in_name
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.utils.io import atomic_write_json
 
@@ -47,13 +54,40 @@ class StageClock:
             self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)
 
 
+@dataclass(frozen=True)
+class LiveTarget:
+    """What a live viewer of a training stage is handed (``viewer.live``).
+
+    Attributes:
+        cameras: the capture's cameras; photos: its images [N,H,W,3] (floats in [0,1]).
+        folder: the run folder; title: what trains there ("reconstruction", "stylization").
+        settings: the ``viewer`` section; chunk: rays per no-grad chunk of the frames it renders.
+    """
+
+    cameras: CaptureCameras
+    photos: np.ndarray
+    folder: Path
+    title: str
+    settings: ViewerConfig
+    chunk: int
+
+
+#: builds the Lightning callback that shows a training stage live; handed in by the entry point that has a viewer
+LiveViewerFactory = Callable[[LiveTarget], Any]
+
+
 class TrainingStage:
-    """The skeleton both training stages share; subclasses say what is trained and what is written."""
+    """The skeleton both training stages share; subclasses say what is trained and what is written.
+
+    Args:
+        scene: the run's config and loaded scene; live: the live viewer's factory (``viewer.live``), if any.
+    """
 
     folder: RunFolder
 
-    def __init__(self, scene: SceneContext) -> None:
+    def __init__(self, scene: SceneContext, live: Optional[LiveViewerFactory] = None) -> None:
         self.scene = scene
+        self.live = live
         self.clock = StageClock()
 
     def run(self) -> StageResult:
@@ -78,30 +112,40 @@ class TrainingStage:
         metrics["stage_seconds"] = self.clock.seconds
         write_cameras(self.scene, self.folder.path)
         atomic_write_json(self.folder.path / "metrics.json", metrics)
+        self.record().write(self.folder.path)
         publish_final(staged, self.folder)
         return StageResult(self.folder.final, {"dir": str(self.folder.path), **self.summary(metrics)})
 
     # ---- what a stage says
     reused_message = "reusing %s"
+    #: what the record says made the run (``run.json``'s ``kind`` and ``stage``)
+    kind, stage = "reconstruction", "reconstruct"
+
+    def record(self) -> RunRecord:
+        """The run's ``run.json`` (:mod:`nerfart_plugin.results.record`)."""
+        return RunRecord.new(self.kind, self.stage, key_in_name(self.folder.path.name), self.folder.path, self.source_run)
+
+    @property
+    def source_run(self) -> Optional[Path]:
+        """The run folder this one starts from (None for a reconstruction)."""
+        return None
 
     def check_inputs(self) -> None:
         """Read and check what the stage starts from (nothing by default)."""
 
     def live_callbacks(self) -> list[Any]:
-        """The live viewer on the field being trained, when ``viewer.live`` (:mod:`nerfart_plugin.viewer.live`)."""
+        """The live viewer on the field being trained, when ``viewer.live``: the callback the stage was handed
+        (``live``, built by the viewer: :func:`nerfart_plugin.viewer.live.live_viewer`)."""
         vc = self.scene.cfg.viewer
         if not vc.live:
             return []
-        from nerfart_plugin.cameras.capture import CaptureCameras
-        from nerfart_plugin.viewer.live import LiveViewer
-
-        from nerfart_plugin.viewer.panels import thumbnails
-
+        if self.live is None:
+            raise ConfigError("viewer.live=true needs the live viewer, which the command line hands in: run "
+                              "python -m nerfart_plugin ... viewer.live=true, or in Python pass "
+                              "live=nerfart_plugin.viewer.live.live_viewer to nerfart_plugin.run.pipeline.run.")
         scene = self.scene.scene
-        cams = CaptureCameras.from_scene(scene, self.scene.ndc)
-        return [LiveViewer(cams, host=vc.host, port=vc.port, render_share=vc.render_share,
-                           chunk=self.scene.cfg.render.chunk, folder=self.folder.path, title=self.folder.what,
-                           photos=thumbnails(scene.images.numpy()))]
+        return [self.live(LiveTarget(CaptureCameras.from_scene(scene, self.scene.ndc), scene.images.numpy(),
+                                     self.folder.path, self.folder.what, vc, self.scene.cfg.render.chunk))]
 
     def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """What the run's ``auto`` settings became (:mod:`nerfart_plugin.config.auto`): the scene's, the data's, the
@@ -133,11 +177,9 @@ def write_cameras(scene: SceneContext, folder: Path) -> None:
     atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame, scene.ndc))
 
 
-def blended_run(cfg: Any, folder: Optional[Path]) -> Any:
-    """The :class:`~nerfart_plugin.api.Run` that ``stage=render`` / ``stage=export`` work on: ``mix.runs`` at
-    ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``."""
-    from nerfart_plugin.api import mix, open_run
-
+def blended_run(cfg: Any, folder: Optional[Path]) -> Run:
+    """The :class:`~nerfart_plugin.results.run.Run` that ``stage=render`` / ``stage=export`` work on: ``mix.runs``
+    at ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``."""
     if cfg.mix.runs:
         return mix([open_run(Path(r).expanduser(), device=cfg.device) for r in cfg.mix.runs], cfg.mix.weights)
     run = open_run(folder, device=cfg.device)

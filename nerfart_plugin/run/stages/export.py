@@ -8,7 +8,6 @@ from typing import Any, Optional
 
 from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export.run_meshes import export_mesh
-from nerfart_plugin.run.factories import SceneContext, build_renderer, load_renderer_state
 from nerfart_plugin.run.stages.base import StageResult, blended_run
 
 
@@ -22,27 +21,21 @@ class MeshTarget:
 
 
 class ExportStage:
-    """``stage=export``: meshes of ``checkpoint`` (at ``strength``, or the ``mix``) into
-    ``<its folder>/mesh/export-<name>-r<resolution><blend tag>.*``."""
+    """``stage=export``: meshes of the run of ``checkpoint`` (at ``strength``), or of the ``mix``, into
+    ``<its folder>/mesh/export-<name>-r<resolution><blend tag>.*`` (the export settings of ``cfg``)."""
 
-    def __init__(self, cfg: Any, checkpoint: Optional[Path], scene: Optional[SceneContext] = None) -> None:
-        self.cfg, self.scene = cfg, scene
+    def __init__(self, cfg: Any, checkpoint: Optional[Path]) -> None:
+        self.cfg = cfg
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
 
     def run(self) -> StageResult:
-        if self.cfg.mix.runs or self.cfg.strength != 1.0:  # a blend (nerfart_plugin.results.blend): read through the run
-            run = blended_run(self.cfg, self.checkpoint)
-            ckpt, field, target, tag = run.checkpoint, run.renderer.field, MeshTarget(self.cfg, run.cameras), run.tag
-        else:
-            ckpt, target, tag = self.checkpoint, self.scene, ""
-            if not ckpt.exists():
-                raise NerfArtError(f"stage=export: no checkpoint at {ckpt}. Run stage=reconstruct first or pass "
-                                   "source_checkpoint=/path/to/final.ckpt.")
-            renderer = build_renderer(self.scene.cfg, self.scene.setup)
-            renderer.load_state_dict(load_renderer_state(ckpt, self.scene))
-            field = renderer.to(self.scene.device).eval().field
-        stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{tag}"
-        mesh = export_mesh(target, field, stem)
+        if not self.cfg.mix.runs and not self.checkpoint.exists():
+            raise NerfArtError(f"stage=export: no checkpoint at {self.checkpoint}. Run stage=reconstruct first or pass "
+                               "source_checkpoint=/path/to/final.ckpt.")
+        run = blended_run(self.cfg, self.checkpoint)
+        ckpt = run.checkpoint
+        stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{run.tag}"
+        mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
         return StageResult(ckpt, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
 
 

@@ -10,12 +10,14 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
-from nerfart_plugin.run.factories import SceneContext, Style
+from nerfart_plugin.run.factories import SceneContext
+from nerfart_plugin.guidance.style import Style
 from nerfart_plugin.run.fit import FitResult
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.run.stages.base import StageResult
+from nerfart_plugin.run.stages.base import LiveViewerFactory
 from nerfart_plugin.run.stages.stylize import StylizeStage
 
 log = logging.getLogger("nerfart_plugin")
@@ -28,10 +30,12 @@ class PreviewStage(StylizeStage):
     guide's and the judge's scores. A finished preview is reused (its scores logged again)."""
 
     reused_message = "this preview is already complete: %s (not recomputed)"
+    stage = "preview"
 
-    def __init__(self, scene: SceneContext, style: Style, source: Path, source_key: str) -> None:
-        super().__init__(preview_scene(scene), style, source, source_key)
-        self.folder = RunFolder(scene.root / "previews" / self.folder.path.name, "preview")
+    def __init__(self, scene: SceneContext, style: Style, source: Path, source_keys: dict[int, str],
+                 live: Optional[LiveViewerFactory] = None) -> None:
+        super().__init__(preview_scene(scene), style, source, source_keys, live)
+        self.folder = RunFolder.find(scene.root / "previews", self.names, "preview")
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         from nerfart_plugin.utils.images import image_grid, save_image, side_by_side

@@ -5,36 +5,18 @@
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import Any, Optional
 
 
 from nerfart_plugin.export.run_meshes import export_source_mesh
 from nerfart_plugin.run.factories import (SceneContext, build_reconstruction_system)
 from nerfart_plugin.run.fit import FitResult, fit_stage
 from nerfart_plugin.run.folders import RunFolder
-from nerfart_plugin.utils.io import config_hash
-from nerfart_plugin.config.schema import component_result_settings, result_settings
+from nerfart_plugin.run.keys import reconstruction_keys
 
-from nerfart_plugin.run.stages.base import TrainingStage
+from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
 
 log = logging.getLogger("nerfart_plugin")
-
-
-def reconstruction_key(scene: SceneContext) -> str:
-    """Hash of the scene's content and every setting that changes the reconstruction (the schema's
-    ``changes_results`` fields of render / reconstruct / trainer, the component sections, the seed)."""
-    c = scene.cfg
-    return config_hash({**scene_settings(scene), "backbone": c.backbone, "encoding": c.encoding,
-                        "reconstruct": result_settings(c.reconstruct), "trainer": result_settings(c.trainer),
-                        "seed": c.seed})
-
-
-def scene_settings(scene: SceneContext) -> dict[str, Any]:
-    """What identifies the photos and how they are rendered, in every key that depends on them: the scene's
-    content and the ``changes_results`` settings of data and render."""
-    c = scene.cfg
-    return {"scene": scene.scene.content_hash, "data": component_result_settings("data", c.data),
-            "render": result_settings(c.render)}
 
 
 class ReconstructStage(TrainingStage):
@@ -42,12 +24,12 @@ class ReconstructStage(TrainingStage):
 
     reused_message = "reusing the cached reconstruction %s (same data, backbone and settings)"
 
-    def __init__(self, scene: SceneContext) -> None:
-        super().__init__(scene)
+    def __init__(self, scene: SceneContext, live: Optional[LiveViewerFactory] = None) -> None:
+        super().__init__(scene, live)
         c = scene.cfg
-        self.key = reconstruction_key(scene)
-        name = f"{c.data['kind']}-{c.backbone['name']}-{c.encoding['name']}-{self.key}"
-        self.folder = RunFolder(scene.root / "reconstructions" / name, "reconstruction")
+        self.keys = reconstruction_keys(scene)
+        self.names = [f"{c.data.name}-{c.backbone.name}-{c.encoding.name}-{key}" for key in self.keys.values()]
+        self.folder = RunFolder.find(scene.root / "reconstructions", self.names, "reconstruction")
 
     def build_system(self) -> Any:
         return build_reconstruction_system(self.scene, out_dir=self.folder.path)

@@ -11,16 +11,16 @@ import numpy as np
 import torch
 
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
-from nerfart_plugin.run.factories import (SceneContext, Style, build_stylization_system,
-    load_renderer_state, style_choices, stylize_settings)
+from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
+from nerfart_plugin.guidance.style import Style, style_choices
 from nerfart_plugin.run.fit import FitResult, fit_stage
 from nerfart_plugin.run.folders import RunFolder
-from nerfart_plugin.utils.io import config_hash, slug
-from nerfart_plugin.config.schema import result_settings
-from nerfart_plugin.utils.io import atomic_path, hash_files
+from nerfart_plugin.utils.io import slug
+from nerfart_plugin.utils.io import atomic_path
 
-from nerfart_plugin.run.stages.base import TrainingStage
-from nerfart_plugin.run.stages.reconstruct import ReconstructStage, scene_settings
+from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
+from nerfart_plugin.run.keys import checkpoint_keys, stylization_keys
+from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -30,27 +30,28 @@ class StylizeStage(TrainingStage):
     (:class:`~nerfart_plugin.systems.StylizationSystem`).
 
     Args:
-        source: the reconstruction's ``final.ckpt``; source_key: what identifies it in the key (the
-            reconstruction key, or the resolved path of an explicit ``source_checkpoint``).
+        source: the reconstruction's ``final.ckpt``; source_keys: what identifies it in the key, per settings
+            format (the reconstruction's keys, or those of an explicit ``source_checkpoint``: :mod:`~nerfart_plugin.run.keys`).
     """
 
     reused_message = "this stylization is already complete: %s (not recomputed, not overwritten)"
+    kind, stage = "stylization", "stylize"
 
-    def __init__(self, scene: SceneContext, style: Style, source: Path, source_key: str) -> None:
-        super().__init__(scene)
+    def __init__(self, scene: SceneContext, style: Style, source: Path, source_keys: dict[int, str],
+                 live: Optional[LiveViewerFactory] = None) -> None:
+        super().__init__(scene, live)
         c = scene.cfg
         self.style, self.source = style, source
         self.settings = stylize_settings(scene, style)
-        self.key = config_hash({"recon": source_key, "prompt": style.prompt, "source_prompt": style.source_prompt,
-                                "guidance": c.guidance, "experiment": result_settings(c.experiment),
-                                # as keyed before the threshold was resolved here: existing runs keep their keys
-                                "stylize": result_settings(stylize_settings(scene)),
-                                "trainer": result_settings(c.trainer),
-                                "seed": c.seed})
-        name = f"{slug(style.raw_prompt)}-{c.backbone['name']}-{self.key}{style.stamp}"
-        self.folder = RunFolder(scene.root / "stylizations" / name, "stylization")
+        self.keys = stylization_keys(scene, style, source_keys, stylize_settings(scene))
+        self.names = [f"{slug(style.raw_prompt)}-{c.backbone.name}-{key}{style.stamp}" for key in self.keys.values()]
+        self.folder = RunFolder.find(scene.root / "stylizations", self.names, "stylization")
         self.source_state: Optional[dict] = None
         self.heldout_views: Optional[tuple[list[int], torch.Tensor, torch.Tensor]] = None  # (ids, source, stylized)
+
+    @property
+    def source_run(self) -> Optional[Path]:
+        return Path(self.source).parent
 
     def check_inputs(self) -> None:
         """The source renderer's tensors, read safely and checked to fit this run's model."""
@@ -75,7 +76,7 @@ class StylizeStage(TrainingStage):
             with self.clock.part("meshes"):
                 metrics.update(self.compare_meshes(system))
         metrics.update({"prompt": st.raw_prompt, "prompt_used": st.prompt, "source_prompt": st.source_prompt,
-                        "guidance": c.guidance["name"], "guidance_is_real": st.real, "stamp": st.stamp or None,
+                        "guidance": c.guidance.name, "guidance_is_real": st.real, "stamp": st.stamp or None,
                         "experiment": c.experiment.model_dump(mode="json"), "steps": fit.steps,
                         "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
                         "source_checkpoint": str(Path(self.source).resolve()),
@@ -191,15 +192,12 @@ class StylizeStage(TrainingStage):
         return {f"mesh_{k}": v for k, v in m.items()}
 
 
-def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -> tuple[Path, str]:
-    """The checkpoint a stylization starts from and what identifies it in the stylization key: the cached
-    reconstruction of these settings (its key covers the scene, data and render settings), or an explicit
-    ``source_checkpoint``: its content, with the scene's content and the data and render settings, which
-    the stylization uses too (a file that does not exist keeps its path; reading it fails clearly later)."""
+def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -> tuple[Path, dict[int, str]]:
+    """The checkpoint a stylization starts from and what identifies it in the stylization key (per settings
+    format): the cached reconstruction of these settings (its keys cover the scene, data and render settings), or
+    an explicit ``source_checkpoint`` (:func:`~nerfart_plugin.run.keys.checkpoint_keys`)."""
     src = scene.cfg.source_checkpoint
     if src:
-        path = Path(src)
-        content = hash_files([path]) if path.is_file() else str(path.resolve())
-        return path, config_hash({"checkpoint": content, **scene_settings(scene)})
+        return Path(src), checkpoint_keys(scene, Path(src))
     assert recon is not None
-    return recon.folder.final, recon.key
+    return recon.folder.final, recon.keys
