@@ -25,7 +25,9 @@ SCHEMA_NODE = "nerfart_schema"
 def defaults_node() -> dict[str, Any]:
     """Every default of the sections with fixed keys, as the plain dict Hydra composes first, plus
     ``hydra.help.template`` listing every setting with its description (``--help``)."""
-    node = RunConfig().model_dump(mode="json", exclude=set(TOP_LEVEL))
+    defaults = {name: info.get_default(call_default_factory=True) for name, info in RunConfig.model_fields.items()
+                if name not in TOP_LEVEL}  # the component sections come from their groups (conf/data/...)
+    node = RunConfig.model_construct(**defaults).model_dump(mode="json", exclude=set(TOP_LEVEL))
     node["hydra"] = {"help": {"template": help_template()}}
     return node
 

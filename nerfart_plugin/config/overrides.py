@@ -32,6 +32,7 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Optional
 
+from nerfart_plugin.config.compose import config_dir, primary_keys
 from nerfart_plugin.errors import ConfigError
 
 log = logging.getLogger("nerfart_plugin")
@@ -179,7 +180,6 @@ def primary_config(argv: list[str]) -> PrimaryConfig:
     composition fails (Hydra then reports the bad selection itself)."""
     from hydra.errors import HydraException
 
-    from nerfart_plugin.config.compose import config_dir, primary_keys
 
     root = config_dir()
     groups = {p.name for p in root.iterdir() if p.is_dir() and not p.name.startswith(("_", ".", "hydra"))}

@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 from typing import Any, Callable, TypeVar
 
+from nerfart_plugin.config.plugins import load_components
 from nerfart_plugin.errors import ConfigError
 
 T = TypeVar("T")
@@ -50,7 +51,6 @@ def register(kind: str, name: str) -> Callable[[T], T]:
 
 
 def _load(kind: str) -> dict[str, Any]:
-    from nerfart_plugin.config.plugins import load_components
 
     for mod in _PROVIDERS.get(kind, ()):
         importlib.import_module(mod)

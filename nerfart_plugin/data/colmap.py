@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from nerfart_plugin.data.undistort import colmap_camera
 from nerfart_plugin.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,6 @@ class ColmapModel:
 
     def camera(self, i: int) -> Any:
         """The ``pycolmap.Camera`` of image ``i`` (projection through its lens model)."""
-        from nerfart_plugin.data.undistort import colmap_camera
 
         w, h = (int(x) for x in self.sizes[i])
         return colmap_camera(self.camera_models[i], w, h, self.params[i], source=self.names[i])

@@ -10,6 +10,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 
+from nerfart_plugin.data.normalize import near_far
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.utils.io import hash_files
@@ -70,7 +71,6 @@ def make_scene(
     ``split`` = (train ids, val ids) given by the files (e.g. Blender's
     ``transforms_{train,val}.json``); otherwise every ``holdout_every``-th view is held out.
     """
-    from nerfart_plugin.data.normalize import near_far
 
     near, far = near_far(capture, c2w, bounds, normalization)
     n = len(images)

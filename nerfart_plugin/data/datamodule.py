@@ -18,10 +18,12 @@ from typing import Any, Optional
 
 from torch.utils.data import DataLoader, Dataset
 
+from nerfart_plugin.config.schema import to_plain
+from nerfart_plugin.data import load_scene
+from nerfart_plugin.data.loader import LoaderContext
 from nerfart_plugin.data.rays import rays_for_views
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.config.schema import to_plain
 
 log = logging.getLogger(__name__)
 
@@ -98,8 +100,6 @@ class SceneDataModule:
     def load(self) -> Scene:
         """Load (once) and return the scene."""
         if self.scene is None:
-            from nerfart_plugin.data import load_scene
-            from nerfart_plugin.data.loader import LoaderContext
 
             context = LoaderContext(background=self.background, cache_root=self.cache_root)
             self.scene = load_scene(self.kind, self.path, context=context, **self.loader_opts)

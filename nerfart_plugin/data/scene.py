@@ -21,6 +21,8 @@ from typing import Literal, Optional
 
 import torch
 
+from nerfart_plugin.errors import DataError
+
 CaptureType = Literal["object", "forward_facing", "unbounded"]
 
 
@@ -77,7 +79,6 @@ class Scene:
 
     def validate(self) -> "Scene":
         """Check shapes and value ranges; raise DataError naming ``source`` on failure."""
-        from nerfart_plugin.errors import DataError
 
         n, h, w, c = self.images.shape
         problems = []

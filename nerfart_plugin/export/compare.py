@@ -27,6 +27,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from nerfart_plugin.errors import ConfigError, DataError
+from nerfart_plugin.export.mesh import field_device
 from nerfart_plugin.fields.analytic import AnalyticSDF
 from nerfart_plugin.fields.field import Field
 
@@ -127,7 +128,6 @@ def evaluate_sdf(source_sdf: SdfLike, points: np.ndarray, chunk: int = 65_536) -
                 "source_sdf is a density field; signed distances need an SDF field (volsdf/neus) or "
                 "an SDF callable. Pass source_sdf=None for unsigned distances."
             )
-        from nerfart_plugin.export.mesh import field_device
 
         device = field_device(source_sdf)
     out = np.empty(len(points))

@@ -19,10 +19,12 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
-from nerfart_plugin.errors import NerfArtError
-from nerfart_plugin.utils.io import config_hash
 from nerfart_plugin.config.schema import result_settings
-from nerfart_plugin.utils.io import atomic_path, atomic_write_json
+from nerfart_plugin.errors import NerfArtError
+from nerfart_plugin.export import MeshExtractor
+from nerfart_plugin.export.texture import bake_texture, export_textured
+from nerfart_plugin.export.world_frame import mesh_in_frame, write_mesh_in_frame
+from nerfart_plugin.utils.io import atomic_path, atomic_write_json, config_hash
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -35,7 +37,6 @@ def export_mesh(scene: Any, field: Any, stem: Path, texture: bool = True):
     ``export.frame`` (the file says which), plus ``stem_textured.obj/.mtl/.png/.glb`` when ``export.texture``;
     returns the mesh in the field's frame (for comparisons), None (with a warning) when the field has no
     surface at the level."""
-    from nerfart_plugin.export import MeshExtractor
 
     ec = scene.cfg.export
     ex = MeshExtractor(resolution=ec.resolution, bound=float(field.bound), chunk=ec.chunk, level=ec.level,
@@ -48,7 +49,6 @@ def export_mesh(scene: Any, field: Any, stem: Path, texture: bool = True):
     for fmt in ec.formats:
         write_in_frame(scene, mesh, stem.with_name(f"{stem.name}.{fmt}"))
     if texture and ec.texture:
-        from nerfart_plugin.export.texture import bake_texture, export_textured
 
         try:
             textured = bake_texture(mesh, field, size=ec.texture_size, chunk=ec.chunk, faces=ec.texture_faces)
@@ -61,14 +61,12 @@ def export_mesh(scene: Any, field: Any, stem: Path, texture: bool = True):
 
 def in_frame(scene: Any, mesh: Any) -> Any:
     """``mesh`` (field frame: normalized, or NDC for forward-facing captures) in ``export.frame``."""
-    from nerfart_plugin.export.world_frame import mesh_in_frame
 
     return mesh_in_frame(mesh, scene.cfg.export.frame, scene.cameras)
 
 
 def write_in_frame(scene: Any, mesh: Any, path: Path) -> Path:
     """Write a field-frame mesh in ``export.frame``, saying so in the file (see :mod:`export.frames`)."""
-    from nerfart_plugin.export.world_frame import write_mesh_in_frame
 
     return write_mesh_in_frame(mesh, path, scene.cfg.export.frame, scene.cameras)
 

@@ -20,6 +20,7 @@ import numpy as np
 import trimesh
 
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.export.mesh import export_mesh
 
 FRAMES = ("world", "normalized")
 
@@ -91,6 +92,5 @@ def mesh_in_frame(mesh: trimesh.Trimesh, frame: str, cams: Any) -> trimesh.Trime
 
 def write_mesh_in_frame(mesh: trimesh.Trimesh, path: Path, frame: str, cams: Any) -> Path:
     """Write a field-frame ``mesh`` in ``frame``, saying so in the file (:func:`frame_metadata`)."""
-    from nerfart_plugin.export.mesh import export_mesh
 
     return export_mesh(mesh_in_frame(mesh, frame, cams), path, meta=frame_metadata(frame, cams.normalization, cams.ndc))

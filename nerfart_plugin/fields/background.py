@@ -8,8 +8,9 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from nerfart_plugin.fields.mlp import make_mlp
+from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.encodings import build_encoding
+from nerfart_plugin.fields.mlp import make_mlp
 
 __all__ = ["EnvironmentMap", "build_background"]
 
@@ -43,7 +44,6 @@ def build_background(cfg: Optional[dict]) -> Optional[EnvironmentMap]:
     if name in (None, "none", "constant"):
         return None
     if name != "envmap":
-        from nerfart_plugin.errors import ConfigError
 
         raise ConfigError(f"background.name={name!r} unknown; use 'envmap' or 'none'.")
     return EnvironmentMap(**cfg)

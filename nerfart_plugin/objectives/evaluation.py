@@ -37,6 +37,8 @@ from typing import Any, Iterable, Mapping, Optional
 import torch
 import torch.nn.functional as F
 
+from nerfart_plugin.errors import WeightsMissingError
+from nerfart_plugin.guidance.imagenet import imagenet_classes, lite_preprocess, load_efficientnet_lite, VARIANTS
 from nerfart_plugin.objectives.losses import psnr
 
 log = logging.getLogger(__name__)
@@ -165,7 +167,6 @@ class ImageNetJudge:
     """
 
     def __init__(self, model: str = "lite2", weights: Optional[str] = None) -> None:
-        from nerfart_plugin.guidance.imagenet import VARIANTS, imagenet_classes, load_efficientnet_lite
 
         self.model = VARIANTS[model].timm_name
         self.size = VARIANTS[model].input_size
@@ -175,7 +176,6 @@ class ImageNetJudge:
     @torch.no_grad()
     def probabilities(self, images: torch.Tensor) -> torch.Tensor:
         """Class probabilities [B,1000] of ``images`` [B,3,H,W] in [0,1] (any size)."""
-        from nerfart_plugin.guidance.imagenet import lite_preprocess
 
         net = self.net.to(images.device)
         return net(lite_preprocess(images, self.size)).softmax(-1).float()
@@ -194,8 +194,6 @@ class ImageNetJudge:
 def judge_for(prompt: str) -> tuple[Optional[ImageNetJudge], int, str]:
     """The judge and the ImageNet class ``prompt`` (as typed) names: ``(judge, target, "")``, or ``(None, -1,
     why)`` when the prompt names no class or the judge cannot load."""
-    from nerfart_plugin.errors import WeightsMissingError
-    from nerfart_plugin.guidance.imagenet import imagenet_classes
 
     try:
         target = imagenet_classes().find(prompt)

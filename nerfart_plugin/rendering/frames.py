@@ -23,7 +23,10 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 import torch
 
+from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.utils.device import to_device
+from nerfart_plugin.utils.images import side_by_side, to_uint8
 
 log = logging.getLogger(__name__)
 
@@ -48,9 +51,6 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
     """
     from tqdm.auto import tqdm
 
-    from nerfart_plugin.data.rays import camera_batch
-    from nerfart_plugin.utils.images import side_by_side, to_uint8
-    from nerfart_plugin.utils.device import to_device
 
     unknown = [c for c in channels if c not in CHANNELS]
     if unknown:

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.utils.io import config_hash
 
 #: the documented range of the strength dial (``strength=``, ``Run.with_strength``)
 STRENGTH_RANGE = (0.0, 2.0)
@@ -120,6 +121,5 @@ def blend_tag(weights: Sequence[float], runs: Sequence[str] = ()) -> str:
     weights and a short hash of its ``runs`` (their folders, in order): ``-mix0.50_0.50-1a2b3c``."""
     if len(weights) == 1:
         return "" if weights[0] == 1.0 else f"-s{weights[0]:.2f}"
-    from nerfart_plugin.utils.io import config_hash
 
     return "-mix" + "_".join(f"{w:.2f}" for w in weights) + f"-{config_hash(list(runs), n=6)}"

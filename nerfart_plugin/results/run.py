@@ -13,17 +13,24 @@ import numpy as np
 import torch
 import yaml
 
-from nerfart_plugin.systems.checkpoints import META_KEY, load_checkpoint, prefixed_state
 from nerfart_plugin.cameras.capture import CaptureCameras, scale_intrinsics
-from nerfart_plugin.cameras.path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
-from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.cameras.path import frame_size, RenderPath, resolve_path, scaled_K, write_camera_path
 from nerfart_plugin.config.migrate import to_current
-from nerfart_plugin.config.schema import RunConfig, parse_config
+from nerfart_plugin.config.schema import parse_config, RunConfig
 from nerfart_plugin.data.datamodule import datamodule_of
-from nerfart_plugin.results.record import RunRecord, migrate
-from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.data.setup import SceneSetup
+from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.export import MeshExtractor
+from nerfart_plugin.export.video import write_video
+from nerfart_plugin.export.world_frame import mesh_in_frame
+from nerfart_plugin.rendering.frames import render_cameras
+from nerfart_plugin.results.blend import blend_tag, blended_renderer, check_strength, check_weights
+from nerfart_plugin.results.record import migrate, RunRecord
+from nerfart_plugin.systems.base import build_renderer
+from nerfart_plugin.systems.checkpoints import load_checkpoint, META_KEY, prefixed_state
+from nerfart_plugin.utils.device import pick_device
+from nerfart_plugin.utils.images import save_image
+from nerfart_plugin.utils.io import hash_files, slug
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -88,14 +95,12 @@ class Run:
     @property
     def tag(self) -> str:
         """The part of output names that tells blends apart: "" as trained, ``-s0.50``, ``-mix0.50_0.50-<hash>``."""
-        from nerfart_plugin.results.blend import blend_tag
 
         return blend_tag(self.weights, self.mixed)
 
     def with_strength(self, strength: float) -> "Run":
         """This stylization at ``strength`` (0: the source, 1: as trained, up to 2: past it), without retraining
         (:mod:`nerfart_plugin.results.blend`); a Run that renders, meshes and writes like any other."""
-        from nerfart_plugin.results.blend import check_strength
 
         if self.kind != "stylization" or self.weights != (1.0,):
             raise NerfArtError(f"{self.folder}: with_strength needs a stylization as trained, not a "
@@ -155,7 +160,6 @@ class Run:
                     ) -> dict[str, list[np.ndarray]]:
         """Every camera of ``path`` (:meth:`camera_path`) -> channel -> list of [H,W,3] uint8 frames
         (``on_frame(done, total)`` after each camera)."""
-        from nerfart_plugin.rendering.frames import render_cameras
 
         rp = self.camera_path(path, frames, resolution, path_frame)
         if "side" in channels and self.kind != "stylization":
@@ -175,8 +179,6 @@ class Run:
         """Render ``path`` and write ``<out_dir>/<channel><stamp>.mp4`` per channel (and, ``png``, the frames
         as ``<channel>/00000.png`` ...) plus ``camera_path.json`` (nerfstudio format, world frame) to render the
         same path again or edit it. Returns what was written."""
-        from nerfart_plugin.utils.images import save_image
-        from nerfart_plugin.export.video import write_video
 
         out = Path(out_dir)
         rp = self.camera_path(path, frames, resolution, path_frame)
@@ -194,7 +196,6 @@ class Run:
 
     def render_folder(self, path: RenderPath) -> Path:
         """Where ``stage=render`` writes ``path``: ``<run>/render/<path>-<F>f-<W>x<H><blend tag>``."""
-        from nerfart_plugin.utils.io import slug
 
         return self.folder / "render" / f"{slug(path.name)}-{len(path)}f-{path.width}x{path.height}{self.tag}"
 
@@ -202,8 +203,6 @@ class Run:
     def mesh(self, resolution: int = 128, frame: str = "world", level: Optional[float] = None):
         """The field's surface by marching cubes (``trimesh.Trimesh`` with vertex colours) in ``frame``
         ("world": the capture's, as the pipeline's exports; "normalized": the training frame)."""
-        from nerfart_plugin.export import MeshExtractor
-        from nerfart_plugin.export.world_frame import mesh_in_frame
 
         ec = self.config.export
         field = self.renderer.field
@@ -218,7 +217,6 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
     cameras) rendering the blend. Runs whose source checkpoints differ in content are refused."""
     from dataclasses import replace
 
-    from nerfart_plugin.results.blend import blended_renderer, check_weights
 
     weights = check_weights(weights, len(runs))
     for r in runs:
@@ -236,7 +234,6 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
 
 
 def _content(path: Path) -> str:
-    from nerfart_plugin.utils.io import hash_files
 
     return hash_files([Path(path)])
 

@@ -19,15 +19,21 @@ from typing import Any, Optional, Sequence
 
 import torch
 
-from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, checkpoint_meta, load_checkpoint, prefixed_state
-from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.config.schema import RunConfig, parse_config
+from nerfart_plugin.cameras.capture import CaptureCameras
+from nerfart_plugin.config.schema import parse_config, RunConfig
 from nerfart_plugin.data.datamodule import datamodule_of
-from nerfart_plugin.data.setup import decide_setup
+from nerfart_plugin.data.rays import views_at_resolution
+from nerfart_plugin.data.scene import Scene
+from nerfart_plugin.data.setup import decide_setup, SceneSetup
 from nerfart_plugin.fields import occupancy_scores_opacity
-from nerfart_plugin.guidance.style import Style, build_style
+from nerfart_plugin.guidance import default_negative_threshold
+from nerfart_plugin.guidance.style import build_style, Style
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.data.setup import SceneSetup
+from nerfart_plugin.systems.checkpoints import check_fits, checkpoint_meta, load_checkpoint, META_KEY, prefixed_state
+from nerfart_plugin.systems.reconstruction import ReconstructionSystem
+from nerfart_plugin.systems.stylization import StylizationSystem
+from nerfart_plugin.utils.device import pick_device
+from nerfart_plugin.utils.io import check_writable_dir
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -67,13 +73,11 @@ class SceneContext:
     @property
     def cameras(self):
         """The capture's cameras (:class:`~nerfart_plugin.cameras.capture.CaptureCameras`)."""
-        from nerfart_plugin.cameras.capture import CaptureCameras
 
         return CaptureCameras.from_scene(self.scene, self.ndc)
 
     def views(self, ids: Sequence[int], resolution: int) -> list[dict[str, Any]]:
         """Ray batches of views ``ids`` at ``resolution`` px on the long side (stylization, evaluation)."""
-        from nerfart_plugin.data.rays import views_at_resolution
 
         return views_at_resolution(self.scene, list(ids), int(resolution), self.ndc)
 
@@ -86,8 +90,6 @@ class SceneContext:
 
 def build_scene(cfg: Any) -> SceneContext:
     """Validate ``cfg`` (a DictConfig, dict or RunConfig), load its scene and decide the scene setup."""
-    from nerfart_plugin.utils.device import pick_device
-    from nerfart_plugin.utils.io import check_writable_dir
 
     run, plain = parse_config(cfg)
     root = check_writable_dir(run.output_root, "output_root")
@@ -108,7 +110,6 @@ def scene_setup(scene: Scene, cfg: RunConfig, ndc: bool) -> SceneSetup:
 # ---------------------------------------------------------------------- renderers and systems
 def build_reconstruction_system(scene: SceneContext, out_dir: Optional[Path] = None, setup: Optional[SceneSetup] = None):
     """The reconstruction LightningModule of ``scene.cfg`` on the scene's training rays."""
-    from nerfart_plugin.systems.reconstruction import ReconstructionSystem
 
     scene.dm.setup("fit")
     c = scene.cfg
@@ -132,7 +133,6 @@ def stylize_settings(scene: SceneContext, style: Optional[Style] = None):
     """The ``stylize`` section with its ``auto`` settings and ``epochs`` resolved: ``resolution`` (the loaded
     images' long side: the data resolution policy, 256x256 head, 270x480 selfies), ``steps`` (epochs x training
     views) and, given the ``style``, ``negative_threshold`` (the guide's own)."""
-    from nerfart_plugin.guidance import default_negative_threshold
 
     sc = scene.cfg.stylize
     update: dict[str, Any] = {}
@@ -149,7 +149,6 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
                              out_dir: Optional[Path] = None):
     """The stylization LightningModule of ``scene.cfg`` starting from ``source_state`` (the reconstruction's
     renderer tensors, :func:`load_renderer_state`); ``style``: from :func:`build_style` by default."""
-    from nerfart_plugin.systems.stylization import StylizationSystem
 
     c = scene.cfg
     style = style or build_style(c)

@@ -23,10 +23,13 @@ from typing import Any, Optional, Sequence
 import lightning as L
 import torch
 
-from nerfart_plugin.systems.checkpoints import allow_project_types
+from nerfart_plugin.config.schema import section, TrainerConfig
 from nerfart_plugin.errors import NerfArtError, RunInterrupted
-from nerfart_plugin.run.folders import RunFolder
-from nerfart_plugin.config.schema import TrainerConfig, section
+from nerfart_plugin.run.folders import RunFolder, write_checkpoint_hash
+from nerfart_plugin.systems.base import steps_loader
+from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt, ProjectedTime
+from nerfart_plugin.systems.checkpoints import allow_project_types
+from nerfart_plugin.systems.loggers import build_loggers
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -47,7 +50,6 @@ def build_trainer(max_steps: int, device: torch.device, trainer_cfg: TrainerConf
     """
     from lightning.pytorch.callbacks import TQDMProgressBar
 
-    from nerfart_plugin.systems.loggers import build_loggers
 
     tc = section(TrainerConfig, trainer_cfg)
     accelerator = {"cuda": "gpu", "mps": "mps"}.get(device.type, "cpu")
@@ -91,7 +93,6 @@ def fit_stage(system: L.LightningModule, folder: RunFolder, *, steps: int, devic
         NerfArtError: out of memory, naming the settings to lower.
         CheckpointError: a ``last.ckpt`` that cannot be read or does not fit.
     """
-    from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt, ProjectedTime
 
     ckpt = AtomicCheckpoint(folder.path, checkpoint_every)
     stop = GracefulInterrupt(ckpt)
@@ -118,7 +119,6 @@ def run_fit(trainer: Any, system: Any, val: Any = None, ckpt_path: Optional[str]
             last: Optional[Path] = None) -> None:
     """``trainer.fit`` on the steps loader (checkpoints read with ``weights_only=True``), with the OOM
     translation and the interrupt report (``stop``: the run's GracefulInterrupt, ``last``: its resume point)."""
-    from nerfart_plugin.systems.base import steps_loader
 
     try:
         with allow_project_types():
@@ -162,7 +162,6 @@ def stage_final(result: FitResult, folder: RunFolder) -> Optional[Path]:
 def publish_final(staged: Path, folder: RunFolder) -> Path:
     """``final.ckpt``, the mark of a finished run: the staged state renamed into place (atomically, after the
     stage's outputs), with its content hash beside it."""
-    from nerfart_plugin.run.folders import write_checkpoint_hash
 
     with open(staged, "rb") as fh:
         os.fsync(fh.fileno())

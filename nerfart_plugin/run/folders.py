@@ -30,8 +30,9 @@ from typing import Any, Callable, Optional, Sequence, TypeVar
 
 from omegaconf import OmegaConf
 
-from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, load_checkpoint
-from nerfart_plugin.results.run import Run, open_run
+from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
+from nerfart_plugin.results.run import open_run, Run
+from nerfart_plugin.systems.checkpoints import check_fits, load_checkpoint, META_KEY
 from nerfart_plugin.utils.io import atomic_write_text, file_sha256
 from nerfart_plugin.utils.lock import run_lock
 
@@ -51,7 +52,6 @@ def checkpoint_damage(path: Path) -> Optional[str]:
     """Why ``path`` (a finished run's ``final.ckpt``) cannot be trusted, or None when it is intact: its
     stored hash differs, or (no hash stored) it does not load as a checkpoint. A file that would run code
     when loaded is not damage: its :class:`~nerfart_plugin.errors.UnsafeCheckpointError` is raised."""
-    from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
 
     stored = Path(f"{path}{HASH_SUFFIX}")
     if stored.is_file():

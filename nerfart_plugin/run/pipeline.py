@@ -26,17 +26,18 @@ import lightning as L
 import torch
 from omegaconf import DictConfig
 
-from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
-from nerfart_plugin.run.factories import SceneContext, build_scene
-from nerfart_plugin.guidance.style import Style, build_style, check_style
 from nerfart_plugin.config.issues import show
-from nerfart_plugin.config.schema import RunConfig, parse_config
-from nerfart_plugin.run.stages.export import ExportStage
-from nerfart_plugin.run.stages.render import RenderStage
+from nerfart_plugin.config.schema import parse_config, RunConfig
+from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
+from nerfart_plugin.guidance import validate_prompt
+from nerfart_plugin.guidance.style import build_style, check_style, Style
+from nerfart_plugin.run.factories import build_scene, SceneContext
 from nerfart_plugin.run.stages.base import LiveViewerFactory
+from nerfart_plugin.run.stages.export import ExportStage
 from nerfart_plugin.run.stages.preview import PreviewStage
 from nerfart_plugin.run.stages.reconstruct import ReconstructStage
-from nerfart_plugin.run.stages.stylize import StylizeStage, stylization_source
+from nerfart_plugin.run.stages.render import RenderStage
+from nerfart_plugin.run.stages.stylize import stylization_source, StylizeStage
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 
@@ -56,7 +57,6 @@ def check_stage(c: RunConfig) -> None:
                           "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1 "
                           "source_checkpoint=<the DDP run>/final.ckpt.")
     if plan.needs_prompt:
-        from nerfart_plugin.guidance import validate_prompt
 
         if c.prompt is None:
             raise ConfigError(f"stage={c.stage} needs a style prompt: add +prompt=\"Vincent van Gogh\" "

@@ -26,6 +26,8 @@ from typing import Any, Iterator, Mapping, Optional
 import torch
 from pydantic import BaseModel
 
+from nerfart_plugin import __version__
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
 
 log = logging.getLogger(__name__)
@@ -37,7 +39,6 @@ META_KEY = "nerfart"
 
 def safe_globals() -> list[Any]:
     """The project's own types allowed in a checkpoint besides tensors and plain data."""
-    from nerfart_plugin.data.setup import SceneSetup
 
     return [SceneSetup]
 
@@ -84,7 +85,6 @@ def load_checkpoint(path: str | Path, fix: str = "") -> dict[str, Any]:
 
 
 def _version() -> str:
-    from nerfart_plugin import __version__
 
     return __version__
 

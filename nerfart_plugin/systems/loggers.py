@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from nerfart_plugin.config.schema import LoggerConfig, section
 from nerfart_plugin.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -30,7 +31,6 @@ def build_loggers(cfg: "LoggerConfig | dict[str, Any] | None", run_dir: Path) ->
     its keys; ``None``: its defaults, tensorboard + csv)."""
     from lightning.pytorch.loggers import CSVLogger
 
-    from nerfart_plugin.config.schema import LoggerConfig, section
 
     c = section(LoggerConfig, cfg)
     out: list[Any] = []

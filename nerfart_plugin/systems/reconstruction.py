@@ -10,13 +10,15 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.objectives.evaluation import view_metrics
 from nerfart_plugin.objectives.losses import psnr, reconstruction_loss, silhouette_loss
-from nerfart_plugin.systems.base import RenderSystem, adam, param_groups, step_seed
+from nerfart_plugin.systems.base import adam, param_groups, RenderSystem, step_seed
+from nerfart_plugin.systems.loggers import log_images
+from nerfart_plugin.systems.loss_terms import (compute, LossTerm, regularizer_terms, regularizer_weights,
+    weighted_sum, weights_of)
 from nerfart_plugin.utils.device import to_device
-from nerfart_plugin.systems.loss_terms import (LossTerm, compute, regularizer_terms, regularizer_weights, weighted_sum,
-                                               weights_of)
-from nerfart_plugin.data.setup import SceneSetup
+from nerfart_plugin.utils.images import image_grid, save_image, to_uint8
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +151,6 @@ class ReconstructionSystem(RenderSystem):
         for k, v in metrics.items():
             self.log(f"val/{k}", v, prog_bar=(k == "psnr"), batch_size=1)
         if self.out_dir is not None and batch_idx == 0:
-            from nerfart_plugin.systems.loggers import log_images
 
             grid = save_val_grid(self.out_dir / "val" / f"step_{self.global_step:06d}.png", img,
                                  batch["rgb"].reshape(img["rgb"].shape))
@@ -162,7 +163,6 @@ class ReconstructionSystem(RenderSystem):
 
 def save_val_grid(path: Path, img: dict[str, torch.Tensor], target: torch.Tensor) -> np.ndarray:
     """Photo | render | depth | normal (if any), side by side; returns the grid (uint8 [H,W,3])."""
-    from nerfart_plugin.utils.images import image_grid, save_image, to_uint8
 
     tiles = [to_uint8(target), to_uint8(img["rgb"]), to_uint8(img["depth"], normalize=True)]
     if "normal" in img:

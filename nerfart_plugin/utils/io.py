@@ -16,6 +16,8 @@ import tempfile
 from pathlib import Path
 from typing import Any, Iterator
 
+from nerfart_plugin.errors import ConfigError
+
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
@@ -85,7 +87,6 @@ def check_writable_dir(path: str | os.PathLike, key: str = "output_root", create
         ConfigError: naming ``key``, the path and the reason (a file in the way, read-only, no permission,
         a missing parent that cannot be created, a full disk).
     """
-    from nerfart_plugin.errors import ConfigError
 
     folder = Path(path).expanduser()
     blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)

@@ -18,6 +18,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Union
 
+from nerfart_plugin.api import open_run, Run
+from nerfart_plugin.viewer import panels
+from nerfart_plugin.viewer.path_editor import PathEditor
+from nerfart_plugin.viewer.server import Viewer
+from nerfart_plugin.viewer.sources import RunField, sibling_runs
+
 __all__ = ["open_viewer"]
 
 
@@ -25,11 +31,6 @@ def open_viewer(run: Union[str, Path, Any], host: str = "127.0.0.1", port: int =
                 max_side: int = 512, checkpoint: str = "final.ckpt") -> Any:
     """Serve a finished run (a folder, a ``.ckpt`` in one, or an :class:`~nerfart_plugin.api.Run`) and return
     the running :class:`~nerfart_plugin.viewer.server.Viewer` (``.url``; ``.stop()`` to end it)."""
-    from nerfart_plugin.api import Run, open_run
-    from nerfart_plugin.viewer import panels
-    from nerfart_plugin.viewer.sources import RunField, sibling_runs
-    from nerfart_plugin.viewer.path_editor import PathEditor
-    from nerfart_plugin.viewer.server import Viewer
 
     opened = run if isinstance(run, Run) else open_run(run, checkpoint=checkpoint, device=device)
     siblings = sibling_runs(opened)

@@ -22,8 +22,14 @@ import lightning as L
 import numpy as np
 import torch
 
+from nerfart_plugin.objectives.evaluation import judge_for
 from nerfart_plugin.run.stages.base import LiveTarget
+from nerfart_plugin.systems.callbacks import GracefulInterrupt
+from nerfart_plugin.viewer import panels
 from nerfart_plugin.viewer.panels import thumbnails
+from nerfart_plugin.viewer.path_editor import PathEditor
+from nerfart_plugin.viewer.server import Viewer
+from nerfart_plugin.viewer.sources import LiveField
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +91,6 @@ class LiveJudge:
     EVERY_S = 5.0
 
     def __init__(self, prompt: str, render_share: float = 0.1) -> None:
-        from nerfart_plugin.objectives.evaluation import judge_for
 
         self.judge, self.target, self.skipped = judge_for(prompt)
         self.render_share = render_share
@@ -184,10 +189,6 @@ class LiveViewer(L.Callback):
 
     # ---- parts
     def start(self, system: Any) -> Any:
-        from nerfart_plugin.viewer import panels
-        from nerfart_plugin.viewer.sources import LiveField
-        from nerfart_plugin.viewer.path_editor import PathEditor
-        from nerfart_plugin.viewer.server import Viewer
 
         field = LiveField(system, self.cameras, self.render_share, self.chunk)
         viewer = Viewer(field, host=self.host, port=self.port,
@@ -202,7 +203,6 @@ class LiveViewer(L.Callback):
         return viewer
 
     def _request_stop(self, trainer: L.Trainer) -> None:
-        from nerfart_plugin.systems.callbacks import GracefulInterrupt
 
         stops = [cb for cb in trainer.callbacks if isinstance(cb, GracefulInterrupt)]
         if stops:  # the run's Ctrl-C path: checkpoint, then RunInterrupted naming how to resume

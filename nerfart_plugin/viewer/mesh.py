@@ -32,6 +32,8 @@ import numpy as np
 import trimesh
 
 from nerfart_plugin.errors import ConfigError, DataError, NerfArtError
+from nerfart_plugin.export.compare import vertex_distances
+from nerfart_plugin.utils.images import save_image
 
 log = logging.getLogger(__name__)
 
@@ -148,7 +150,6 @@ def render_meshes(
         poly = to_pyvista(tm)
         show_disp = i == 1 and (scalars == "displacement" or (scalars == "auto"))
         if show_disp:
-            from nerfart_plugin.export.compare import vertex_distances
 
             d = vertex_distances(tm, tms[0], n_samples=n_samples, sign_from_normals=True)
             poly.point_data["displacement"] = d
@@ -193,7 +194,6 @@ def render_meshes(
     finally:
         if screenshot is not None:
             pl.close()
-    from nerfart_plugin.utils.images import save_image
 
     save_image(img, screenshot)
     log.info("Wrote screenshot %s", screenshot)

@@ -18,6 +18,7 @@ from typing import Any, Optional
 
 import numpy as np
 
+from nerfart_plugin.cameras.path import read_camera_path
 from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.viewer.cameras import to_viser
 from nerfart_plugin.viewer.keyframes import interpolate, save_path
@@ -108,7 +109,6 @@ class PathEditor:
 
     def render_video(self) -> dict:
         """Save the path, then render it to the folder ``stage=render`` would use, showing progress."""
-        from nerfart_plugin.cameras.path import read_camera_path
 
         path_file = self.save_file()
         rp = read_camera_path(path_file, self.run.cameras)

@@ -22,9 +22,11 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 import torch
 
+from nerfart_plugin.api import mix, open_run
 from nerfart_plugin.cameras.capture import CaptureCameras
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.viewer.cameras import ViewCamera, render_path
+from nerfart_plugin.rendering.frames import render_cameras
+from nerfart_plugin.viewer.cameras import render_path, ViewCamera
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +56,6 @@ class ViewSettings:
 def render_frame(renderer: Any, cams: CaptureCameras, camera: ViewCamera, long_side: int, channel: str, chunk: int,
                  device: torch.device) -> np.ndarray:
     """One [H,W,3] uint8 frame of ``renderer`` from ``camera`` (world frame) at ``long_side`` pixels."""
-    from nerfart_plugin.rendering.frames import render_cameras
 
     if channel not in VIEW_CHANNELS:
         raise ConfigError(f"channel {channel!r}: the viewer shows one of {', '.join(VIEW_CHANNELS)}.")
@@ -123,13 +124,11 @@ class RunField:
         """The source field rendered with the stylization's sampling settings (the strength dial at 0), as the
         stylization's own source views are."""
         if self._source is None:
-            from nerfart_plugin.api import mix
 
             self._source = mix([self.run], [0.0]).renderer
         return self._source
 
     def _blended(self, weights: tuple[float, ...]) -> Any:
-        from nerfart_plugin.api import mix
 
         runs, ws = [self.run], [weights[0]]
         for folder, w in zip(self.siblings, weights[1:]):
@@ -139,7 +138,6 @@ class RunField:
         return mix(runs, ws).renderer
 
     def _sibling(self, folder: Path) -> Any:
-        from nerfart_plugin.api import open_run
 
         if folder not in self._opened:
             log.info("opening %s to mix it", folder)

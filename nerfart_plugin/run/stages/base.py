@@ -14,14 +14,14 @@ from typing import Any, Callable, Iterator, Optional
 import numpy as np
 
 
-from nerfart_plugin.cameras.capture import CaptureCameras
+from nerfart_plugin.cameras.capture import CaptureCameras, viewer_cameras
+from nerfart_plugin.config.auto import component_choices, recorded
 from nerfart_plugin.config.schema import ViewerConfig
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.config.auto import component_choices, recorded
-from nerfart_plugin.run.factories import (SceneContext)
+from nerfart_plugin.results.record import key_in_name, RunRecord
+from nerfart_plugin.results.run import mix, open_run, Run
+from nerfart_plugin.run.factories import SceneContext
 from nerfart_plugin.run.fit import FitResult, publish_final, stage_final
-from nerfart_plugin.results.run import Run, mix, open_run
-from nerfart_plugin.results.record import RunRecord, key_in_name
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.utils.io import atomic_write_json
 
@@ -172,7 +172,6 @@ class TrainingStage:
 def write_cameras(scene: SceneContext, folder: Path) -> None:
     """``cameras.json``: the capture's cameras in the frame of the run's meshes, for the viewer and
     ``stage=render`` (:meth:`~nerfart_plugin.cameras.capture.CaptureCameras.from_json`)."""
-    from nerfart_plugin.cameras.capture import viewer_cameras
 
     atomic_write_json(folder / "cameras.json", viewer_cameras(scene.scene, scene.cfg.export.frame, scene.ndc))
 

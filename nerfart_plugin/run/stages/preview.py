@@ -12,13 +12,13 @@ import logging
 from pathlib import Path
 from typing import Any, Optional
 
-from nerfart_plugin.run.factories import SceneContext
 from nerfart_plugin.guidance.style import Style
+from nerfart_plugin.run.factories import SceneContext
 from nerfart_plugin.run.fit import FitResult
 from nerfart_plugin.run.folders import RunFolder
-from nerfart_plugin.run.stages.base import StageResult
-from nerfart_plugin.run.stages.base import LiveViewerFactory
+from nerfart_plugin.run.stages.base import LiveViewerFactory, StageResult
 from nerfart_plugin.run.stages.stylize import StylizeStage
+from nerfart_plugin.utils.images import image_grid, save_image, side_by_side
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -38,7 +38,6 @@ class PreviewStage(StylizeStage):
         self.folder = RunFolder.find(scene.root / "previews", self.names, "preview")
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
-        from nerfart_plugin.utils.images import image_grid, save_image, side_by_side
 
         with self.clock.part("evaluation"):
             metrics = self.heldout_metrics(system)

@@ -9,12 +9,14 @@ from typing import Any, Optional
 
 
 from nerfart_plugin.export.run_meshes import export_source_mesh
-from nerfart_plugin.run.factories import (SceneContext, build_reconstruction_system)
-from nerfart_plugin.run.fit import FitResult, fit_stage
+from nerfart_plugin.objectives.evaluation import evaluate_views, evaluation_views
+from nerfart_plugin.run.factories import build_reconstruction_system, SceneContext
+from nerfart_plugin.run.fit import fit_stage, FitResult
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.run.keys import reconstruction_keys
-
 from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
+from nerfart_plugin.systems.callbacks import FiniteGradientGuard
+
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -35,7 +37,6 @@ class ReconstructStage(TrainingStage):
         return build_reconstruction_system(self.scene, out_dir=self.folder.path)
 
     def fit(self, system: Any) -> FitResult:
-        from nerfart_plugin.systems.callbacks import FiniteGradientGuard
 
         rc = self.scene.cfg.reconstruct
         val_kw: dict[str, Any] = (dict(val_check_interval=rc.val_every, check_val_every_n_epoch=None,
@@ -48,7 +49,6 @@ class ReconstructStage(TrainingStage):
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         """Held-out metrics (all views), the scene setup and notes, and ``mesh/source``."""
-        from nerfart_plugin.objectives.evaluation import evaluate_views, evaluation_views
 
         system.to(self.scene.device).eval()
         with self.clock.part("evaluation"):

@@ -10,17 +10,24 @@ from typing import Any, Optional
 import numpy as np
 import torch
 
+from nerfart_plugin.cameras.orbits import orbit_path
+from nerfart_plugin.data.rays import camera_batch
+from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
-from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
+from nerfart_plugin.export.video import write_video
 from nerfart_plugin.guidance.style import Style, style_choices
-from nerfart_plugin.run.fit import FitResult, fit_stage
+from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
+    lost_subject, off_surface_share, silhouette_iou, view_consistency)
+from nerfart_plugin.run.factories import build_stylization_system, load_renderer_state, SceneContext, stylize_settings
+from nerfart_plugin.run.fit import fit_stage, FitResult
 from nerfart_plugin.run.folders import RunFolder
-from nerfart_plugin.utils.io import slug
-from nerfart_plugin.utils.io import atomic_path
-
-from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
 from nerfart_plugin.run.keys import checkpoint_keys, stylization_keys
+from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
 from nerfart_plugin.run.stages.reconstruct import ReconstructStage
+from nerfart_plugin.utils.device import to_device
+from nerfart_plugin.utils.images import side_by_side, to_uint8
+from nerfart_plugin.utils.io import atomic_path, slug
+
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -81,7 +88,6 @@ class StylizeStage(TrainingStage):
                         "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
                         "source_checkpoint": str(Path(self.source).resolve()),
                         **system.negatives_report()})
-        from nerfart_plugin.objectives.evaluation import lost_subject
 
         warnings = [w for w in (st.warning, lost_subject(metrics.get("silhouette_iou"))) if w]
         if warnings:
@@ -99,8 +105,6 @@ class StylizeStage(TrainingStage):
     def heldout_metrics(self, system: Any) -> dict[str, Any]:
         """CLIP scores, colour means, edge similarity, silhouette IoU, the judge and the off-surface weight
         on the held-out views (``heldout/`` images saved)."""
-        from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views,
-            judge_prompt, off_surface_share, silhouette_iou)
 
         system.to(self.scene.device).eval()
         scene = self.scene.scene
@@ -120,7 +124,6 @@ class StylizeStage(TrainingStage):
         self.heldout_views = (ids, src, sty)  # what a preview shows, without reading the PNGs back
         metrics["judge"] = judge_prompt(self.style.raw_prompt, src, sty, ids)
         metrics["evaluated_on"] = evaluation_views(scene)
-        from nerfart_plugin.utils.device import to_device
 
         dev = self.scene.device
         metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.renderer, to_device(v, dev))
@@ -133,7 +136,6 @@ class StylizeStage(TrainingStage):
         """``heldout/source_<view>.png`` and ``heldout/stylized_<view>.png`` at the stylization resolution."""
         from PIL import Image
 
-        from nerfart_plugin.utils.images import to_uint8
 
         for i, a, b in zip(ids, src, sty):
             for name, img in (("source", a), ("stylized", b)):
@@ -144,11 +146,6 @@ class StylizeStage(TrainingStage):
     def video(self, system: Any) -> dict[str, Any]:
         """The source | stylized orbit video (``stylize.video_frames`` frames at the stylization size) and the
         view-consistency error along it; nothing with ``stylize.video_frames=0``."""
-        from nerfart_plugin.cameras.orbits import orbit_path
-        from nerfart_plugin.data.rays import camera_batch
-        from nerfart_plugin.objectives.evaluation import view_consistency
-        from nerfart_plugin.utils.images import side_by_side, to_uint8
-        from nerfart_plugin.export.video import write_video
 
         sc, stamp, scene = self.settings, self.style.stamp, self.scene.scene
         metrics: dict[str, Any] = {"view_consistency_error": None}
@@ -177,7 +174,6 @@ class StylizeStage(TrainingStage):
 
     def compare_meshes(self, system: Any) -> dict[str, Any]:
         """``mesh/source``, ``mesh/stylized<stamp>``, ``mesh/displacement<stamp>.ply`` and the geometry change."""
-        from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 
         stamp, mesh_dir = self.style.stamp, self.folder.path / "mesh"
         src = export_source_mesh(self.scene, system.source.field, mesh_dir / "source",
