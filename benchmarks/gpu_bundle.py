@@ -80,6 +80,14 @@ PINNED = {"imageio-ffmpeg": "0.6.0"}
 CAPTURE, JOB_LONG_SIDE = "fangzhou_nature", 480
 
 
+#: the CUDA tests' CPU twin: a tiny but complete run (the shipped head, toy guidance; tests/pipeline_helpers.TINY)
+TINY_RUN = ("guidance=toy", "+prompt=red", "reconstruct.steps=5", "stylize.steps=2", "data.resolution=24",
+            "render.num_samples=16", "render.chunk=2048", "render.occupancy.resolution=16", "reconstruct.batch_rays=256",
+            "reconstruct.val_every=1000", "reconstruct.val_views=1", "export.resolution=24", "stylize.resolution=24",
+            "stylize.patch_size=16", "stylize.video_frames=3", "stylize.render_every=0", "export.texture=false",
+            "logger=csv")
+
+
 def wheel_requirements(wheel: Path, python: str) -> list[str]:
     """Normalized names of the requirements of ``wheel`` that apply on Linux x86-64 CPython ``python``
     (extras left out)."""
@@ -193,22 +201,19 @@ owners = md.packages_distributions()
 class Refuse(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path=None, target=None):
         top = name.split(".")[0]
-        if top in sys.stdlib_module_names or top in ("nerfart_plugin", "benchmarks", "tests") or path is not None:
+        if top in sys.stdlib_module_names or top in ("nerfart_plugin", "benchmarks") or path is not None:
             return None
         dists = {{canonicalize_name(d) for d in owners.get(top, [])}}
         if dists and not dists & allowed:
             raise ImportError(f"{{name}} (from {{sorted(dists)}}) is neither in the GPU image nor in the bundle")
         return None
 sys.meta_path.insert(0, Refuse())
-sys.path.insert(0, {str(ROOT)!r}); sys.path.insert(0, {str(ROOT / 'tests')!r})
 """
     gpu_paths = f"""
 from pathlib import Path
-from pipeline_helpers import tiny_cfg
-from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+from nerfart_plugin.config.compose import load_config
 from nerfart_plugin.run.pipeline import run
-run(tiny_cfg(Path({str(out / 'tiny')!r}), DEFAULT_SCENE, "guidance=toy", "prompt=red", "reconstruct.steps=5",
-             "stylize.steps=2"))
+run(load_config([{f"output_root={out / 'tiny'}"!r}, *{TINY_RUN!r}]))
 from nerfart_plugin.guidance import build_guidance
 from nerfart_plugin.guidance.clip import TINY_TEST_OVERRIDES
 build_guidance({{"name": "clip", "allow_random_weights": True, "pretrained": None,

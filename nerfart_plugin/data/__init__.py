@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from nerfart_plugin.config import registry
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data import h3ds, llff, nerfstudio, selfie  # noqa: F401  (register loaders)
 from nerfart_plugin.data.rays import ndc_rays, pixel_rays, rays_for_views
@@ -22,15 +23,13 @@ def load_scene(kind: str, path: Any, cfg: Any = None, context: Any = None, **opt
     ``resolution`` (long image side in pixels; antialiased resize, K scaled exactly), ``holdout_every``
     (default 8: ``val_ids = ids[::8]``) and ``use_masks`` (default True); see each loader's ``Config``.
     """
-    from nerfart_plugin.config import registry
-
     return registry.get("data", kind)(path, cfg, context, **options)
 
 
 __all__ = ["Scene", "load_scene", "pixel_rays", "ndc_rays", "rays_for_views"]
 
 
-def __getattr__(name: str):  # lazy: keep `import nerfart_plugin.data` free of lightning
+def __getattr__(name: str):  # the datamodule reads load_scene from this package: re-exported on first use
     if name in ("SceneDataModule", "default_scene_path"):
         from nerfart_plugin.data import datamodule
 

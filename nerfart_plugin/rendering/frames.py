@@ -37,7 +37,8 @@ CHANNELS = ("rgb", "depth", "normal", "opacity", "side")
 def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: float, chunk: int,
                    device: torch.device, channels: Sequence[str] = ("rgb",), source: Any = None,
                    labels: tuple[str, str] = ("source", "stylized"), progress: bool = True,
-                   on_frame: Optional[Callable[[int, int], None]] = None) -> dict[str, list[np.ndarray]]:
+                   on_frame: Optional[Callable[[int, int], None]] = None,
+                   outputs: Optional[dict[str, list]] = None) -> dict[str, list[np.ndarray]]:
     """Render every camera of ``path`` (:class:`~nerfart_plugin.cameras.path.RenderPath`) without grad.
 
     Args:
@@ -45,6 +46,9 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
         ndc: NDC rays (forward-facing captures); near / far: ray bounds (normalized units).
         chunk: rays per no-grad chunk (memory only).
         on_frame: called with (frames done, frames in all) after each camera (a progress display).
+        outputs: if given, each frame's renders as images [H,W,C] (``rgb``, ``depth``, ``opacity``, on
+            ``device``) are appended to ``outputs["rendered"]`` (and the source's, for ``side``, to
+            ``outputs["source"]``): what a metric over the frames reads (view consistency).
 
     Returns:
         channel -> list of [H,W,3] uint8 frames (``side``: [H, 2W + gap, 3]).
@@ -70,6 +74,10 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
         if "side" in channels:
             src = _images(source.render_chunked(b, chunk=chunk, with_normals=False), path.height, path.width)
             raw["side"].append(side_by_side(to_uint8(src["rgb"]), to_uint8(out["rgb"]), labels=labels))
+            if outputs is not None:
+                outputs.setdefault("source", []).append(src)
+        if outputs is not None:
+            outputs.setdefault("rendered", []).append(out)
         if "opacity" in channels:
             raw["opacity"].append(to_uint8(out["opacity"]))
         if want_normal:

@@ -9,7 +9,7 @@ midpoints, converts to opacities with ``field.alpha`` and composites:
 from __future__ import annotations
 
 import math
-from typing import Any, Optional, Sequence
+from typing import Any, Callable, Optional, Sequence
 
 import torch
 import torch.nn as nn
@@ -294,8 +294,20 @@ class VolumeRenderer(nn.Module):
         t_start, t_end = t_samples[..., 0], t_samples[..., 1]
         d_norm = rays_d.norm(dim=-1, keepdim=True)
         dirs = rays_d / d_norm.clamp_min(1e-12)
-        acc, stop_at = self._march_blocks(rays_o, rays_d, dirs, 0.5 * (t_start + t_end),
-                                          (t_end - t_start).clamp_min(0.0) * d_norm, with_normals)
+        t, deltas = 0.5 * (t_start + t_end), (t_end - t_start).clamp_min(0.0) * d_norm
+        acc = _MarchState(t.shape[0], rays_o.device)
+        log_stop = math.log(self.stop_transmittance)
+
+        def composite(idx: Tensor, b0: int, b1: int, w1: int, out: dict[str, Tensor], compact: dict[str, Tensor],
+                      alpha: Tensor) -> Tensor:
+            acc.add(idx, alpha, t[idx, b0:b1], out, w1 - b0)
+            return acc.log_t[idx] < log_stop
+
+        stop_at = self._march_blocks(rays_o, rays_d, dirs, t, deltas, with_normals, composite)
+        if acc.evaluated == 0:  # every ray missed: one probe sample tells which outputs the field gives
+            probe = self.field.query(rays_o[:1], dirs[:1], with_normal=with_normals)
+            if "normal" in probe:
+                acc.normal = torch.zeros_like(acc.rgb)
         result = acc.finish(self._background(batch, dirs), t_start[:, 0], t_end[:, -1])
         result["t_samples"] = self._collapse_behind_stop(t_samples, stop_at)
         result["samples_evaluated"] = torch.tensor(acc.evaluated)
@@ -310,31 +322,28 @@ class VolumeRenderer(nn.Module):
         return torch.stack([t_start, torch.where(collapse, t_start, t_end)], dim=-1)
 
     def _march_blocks(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor,
-                      with_normals: bool) -> tuple["_MarchState", Tensor]:
-        """Composite sections ``t``/``deltas`` [R,K] front to back, ``march_block`` at a time, on the rays
-        still visible. Returns the sums and, per ray, the first section not evaluated [R] (K if none)."""
+                      with_normals: bool, composite: Callable[..., Tensor]) -> Tensor:
+        """Evaluate sections ``t``/``deltas`` [R,K] front to back, ``march_block`` at a time, on the rays still
+        visible (rays that miss the occupancy grid are never evaluated), and hand each block to
+        ``composite(idx [n], b0, b1, w1, out, compact, alpha [n,b1-b0]) -> stops [n] bool`` (the field's output on
+        sections ``b0:w1``, the block and the samples its opacities read: :meth:`_evaluate_block`), which
+        composites it and says which of the rays ``idx`` stop there. Returns, per ray, the first section not
+        evaluated [R] (K if none)."""
         R, K = t.shape
         look = int(self.field.alpha_lookahead)
-        acc = _MarchState(R, rays_o.device)
-        active = (deltas > 0).any(-1)  # rays that miss the occupancy grid are never evaluated
-        stop_at = torch.full((R,), K, dtype=torch.long, device=rays_o.device)
-        log_stop = math.log(self.stop_transmittance)
+        active = (deltas > 0).any(-1)
+        stop_at = torch.full((R,), K, dtype=torch.long, device=t.device)
         for b0 in range(0, K, self.march_block):
             idx = active.nonzero()[:, 0]
             if idx.numel() == 0:
                 break
             b1 = min(K, b0 + self.march_block)
-            w1 = min(K, b1 + look)  # the block and the samples its opacities read
-            out, _, alpha = self._evaluate_block(rays_o, rays_d, dirs, t, deltas, idx, b0, b1, w1, with_normals)
-            acc.add(idx, alpha, t[idx, b0:b1], out, w1 - b0)
-            done = idx[acc.log_t[idx] < log_stop]
+            w1 = min(K, b1 + look)
+            out, compact, alpha = self._evaluate_block(rays_o, rays_d, dirs, t, deltas, idx, b0, b1, w1, with_normals)
+            done = idx[composite(idx, b0, b1, w1, out, compact, alpha)]
             stop_at[done] = b1
             active[done] = False
-        if acc.evaluated == 0:  # every ray missed: one probe sample tells which outputs the field gives
-            probe = self.field.query(rays_o[:1], dirs[:1], with_normal=with_normals)
-            if "normal" in probe:
-                acc.normal = torch.zeros_like(acc.rgb)
-        return acc, stop_at
+        return stop_at
 
     def _evaluate_block(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor, idx: Tensor,
                         b0: int, b1: int, w1: int, with_normals: bool) -> tuple[dict[str, Tensor], dict[str, Tensor], Tensor]:
@@ -370,7 +379,9 @@ class VolumeRenderer(nn.Module):
         d_norm = rays_d.norm(dim=-1, keepdim=True)
         dirs = rays_d / d_norm.clamp_min(1e-12)
         t, deltas = 0.5 * (t_start + t_end), (t_end - t_start).clamp_min(0.0) * d_norm
-        blocks, stop_at = self._march_blocks_with_grad(rays_o, rays_d, dirs, t, deltas, with_normals)
+        blocks: list[dict[str, Any]] = []
+        stop_at = self._march_blocks(rays_o, rays_d, dirs, t, deltas, with_normals, _GradBlocks(blocks, R, t, deltas,
+                                                                                                self.stop_transmittance))
         kept = self._collapse_behind_stop(t_samples, stop_at)
         if not blocks:  # every ray misses the occupancy grid: forward keeps the graph alive with one probe
             return self.forward(batch, t_samples=kept, with_normals=with_normals)
@@ -389,44 +400,6 @@ class VolumeRenderer(nn.Module):
         result["samples_evaluated"] = torch.tensor(sum(b["evaluated"] for b in blocks))
         return result
 
-    def _march_blocks_with_grad(self, rays_o: Tensor, rays_d: Tensor, dirs: Tensor, t: Tensor, deltas: Tensor,
-                                with_normals: bool) -> tuple[list[dict[str, Any]], Tensor]:
-        """:meth:`_march_blocks` keeping each block's differentiable weights [n,B], colours [n,B,3] (normals),
-        their ``rows``/``cols`` in [R,K] and the field's compact output. Returns the blocks and, per ray,
-        the first section not evaluated [R] (K if none)."""
-        R, K = t.shape
-        look = int(self.field.alpha_lookahead)
-        active = (deltas > 0).any(-1)
-        stop_at = torch.full((R,), K, dtype=torch.long, device=t.device)
-        log_t = torch.zeros(R, device=t.device)  # differentiable log transmittance in front of the next block
-        log_stop = math.log(self.stop_transmittance)
-        blocks: list[dict[str, Any]] = []
-        for b0 in range(0, K, self.march_block):
-            idx = active.nonzero()[:, 0]
-            if idx.numel() == 0:
-                break
-            b1 = min(K, b0 + self.march_block)
-            w1 = min(K, b1 + look)
-            out, compact, alpha = self._evaluate_block(rays_o, rays_d, dirs, t, deltas, idx, b0, b1, w1, with_normals)
-            alpha = alpha.clamp(0.0, 1.0)  # as weights_from_alpha, so the weights are forward's
-            weights, log_t_block = block_weights(alpha, log_t[idx])
-            block = {"weights": weights,
-                     "rows": idx[:, None].expand(-1, b1 - b0),
-                     "cols": torch.arange(b0, b1, device=t.device).expand(idx.numel(), -1),
-                     "evaluated": int(idx.numel() * (w1 - b0))}
-            for key in ("rgb", "normal"):
-                if key in out:
-                    block[key] = out[key].reshape(-1, w1 - b0, 3)[:, : b1 - b0].float()
-            log_t = log_t.index_add(0, idx, log_t_block)
-            stops = log_t.detach()[idx] < log_stop
-            # each sample once in the regularizers: a lookahead sample joins the next block, unless the ray stops
-            own = (torch.arange(b0, w1, device=t.device)[None, :] < b1) | stops[:, None]
-            block["compact"] = _select_samples(compact, own.reshape(-1), deltas[idx, b0:w1].reshape(-1) > 0)
-            blocks.append(block)
-            done = idx[stops]
-            stop_at[done] = b1
-            active[done] = False
-        return blocks, stop_at
 
     @torch.no_grad()
     def render_chunked(self, batch: dict[str, Any], chunk: int = 8192, perturb: bool = False,
@@ -453,6 +426,36 @@ class VolumeRenderer(nn.Module):
             if k in batch:
                 merged[k] = batch[k]
         return merged
+
+
+class _GradBlocks:
+    """The compositing of :meth:`VolumeRenderer.march_with_grad`'s blocks: each block's differentiable weights
+    [n,B], colours [n,B,3] (normals), their ``rows``/``cols`` in [R,K] and the field's compact output, appended to
+    ``blocks``; the log transmittance in front of the next block is kept differentiable."""
+
+    def __init__(self, blocks: list[dict[str, Any]], R: int, t: Tensor, deltas: Tensor, stop_transmittance: float):
+        self.blocks, self.t, self.deltas = blocks, t, deltas
+        self.log_t = torch.zeros(R, device=t.device)
+        self.log_stop = math.log(stop_transmittance)
+
+    def __call__(self, idx: Tensor, b0: int, b1: int, w1: int, out: dict[str, Tensor], compact: dict[str, Tensor],
+                 alpha: Tensor) -> Tensor:
+        alpha = alpha.clamp(0.0, 1.0)  # as weights_from_alpha, so the weights are forward's
+        weights, log_t_block = block_weights(alpha, self.log_t[idx])
+        device = self.t.device
+        block = {"weights": weights, "rows": idx[:, None].expand(-1, b1 - b0),
+                 "cols": torch.arange(b0, b1, device=device).expand(idx.numel(), -1),
+                 "evaluated": int(idx.numel() * (w1 - b0))}
+        for key in ("rgb", "normal"):
+            if key in out:
+                block[key] = out[key].reshape(-1, w1 - b0, 3)[:, : b1 - b0].float()
+        self.log_t = self.log_t.index_add(0, idx, log_t_block)
+        stops = self.log_t.detach()[idx] < self.log_stop
+        # each sample once in the regularizers: a lookahead sample joins the next block, unless the ray stops
+        own = (torch.arange(b0, w1, device=device)[None, :] < b1) | stops[:, None]
+        block["compact"] = _select_samples(compact, own.reshape(-1), self.deltas[idx, b0:w1].reshape(-1) > 0)
+        self.blocks.append(block)
+        return stops
 
 
 class _MarchState:

@@ -43,6 +43,6 @@ def open_viewer(run: Union[str, Path, Any], host: str = "127.0.0.1", port: int =
         viewer.panels["style"] = panels.add_style_panel(viewer, siblings)
     viewer.panels["mesh"] = panels.add_mesh_toggle(viewer, panels.run_mesh(opened.folder, opened.kind))
     viewer.path_editor = PathEditor(viewer, opened)
-    capture = panels.CaptureCameras(viewer)
+    capture = panels.CaptureFrustums(viewer)
     viewer.photos_loading = panels.load_photos_later(opened, capture)
     return viewer

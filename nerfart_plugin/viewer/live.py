@@ -197,7 +197,7 @@ class LiveViewer(L.Callback):
         viewer.panels["training"] = add_training_panel(viewer, self.control)
         viewer.panels["view"] = panels.add_view_panel(viewer, field.is_stylization)
         viewer.path_editor = PathEditor(viewer, None)
-        capture = panels.CaptureCameras(viewer)
+        capture = panels.CaptureFrustums(viewer)
         if self.photos is not None:
             capture.set_photos(self.photos)
         return viewer

@@ -71,7 +71,7 @@ def _run_label(folder: Path) -> str:
         return folder.name
 
 
-class CaptureCameras:
+class CaptureFrustums:
     """The capture's cameras as frustums in every tab (with their photos once read), shown or hidden by one
     checkbox. A click on a frustum moves that tab's camera there; the frustum of the camera a tab sits at
     is hidden in that tab (it would cover the view), as is the front camera's when a tab opens."""
@@ -127,7 +127,7 @@ class CaptureCameras:
         self.at.pop(client_id, None)
 
 
-def load_photos_later(run: Any, layer: CaptureCameras) -> threading.Thread:
+def load_photos_later(run: Any, layer: CaptureFrustums) -> threading.Thread:
     """Read the capture's photos in the background (from the run's data settings) and put them on the
     frustums; a capture whose data is not on this machine keeps bare frustums."""
 

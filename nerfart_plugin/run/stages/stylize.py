@@ -11,7 +11,6 @@ import numpy as np
 import torch
 
 from nerfart_plugin.cameras.orbits import orbit_path
-from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.export.video import write_video
@@ -25,9 +24,13 @@ from nerfart_plugin.run.keys import checkpoint_keys, stylization_keys
 from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
 from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 from nerfart_plugin.utils.device import to_device
-from nerfart_plugin.utils.images import side_by_side, to_uint8
+from nerfart_plugin.utils.images import to_uint8
 from nerfart_plugin.utils.io import atomic_path, slug
 
+
+from nerfart_plugin.cameras.capture import scale_intrinsics
+from nerfart_plugin.cameras.path import RenderPath
+from nerfart_plugin.rendering.frames import render_cameras
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -153,23 +156,19 @@ class StylizeStage(TrainingStage):
             return metrics
         ref = self.scene.views(scene.train_ids[:1] or [0], sc.resolution)[0]
         c2ws = orbit_path(scene, sc.video_frames)
-        K = scene.K[0].clone()
-        K[0] *= ref["W"] / scene.width
-        K[1] *= ref["H"] / scene.height
-        near, far = float(scene.near.min()), float(scene.far.max())
-        frames, sty_frames, src_frames = [], [], []
+        K = scale_intrinsics(scene.K[0], ref["W"] / scene.width, ref["H"] / scene.height)
+        path = RenderPath("orbit", c2ws, K.expand(len(c2ws), 3, 3), int(ref["H"]), int(ref["W"]))
         label = "stylized" + (f" ({stamp.strip('_')})" if stamp else "")
-        for c2w in c2ws:
-            b = camera_batch(K, c2w, ref["H"], ref["W"], near, far, self.scene.ndc)
-            a, s = system.render_batch(b, source=True), system.render_batch(b)
-            src_frames.append(a)
-            sty_frames.append(s)
-            frames.append(side_by_side(to_uint8(a["rgb"]), to_uint8(s["rgb"]), labels=("source", label)))
+        rendered: dict[str, list] = {}
+        frames = render_cameras(system.renderer, path, ndc=self.scene.ndc, near=float(scene.near.min()),
+                                far=float(scene.far.max()), chunk=sc.chunk, device=self.scene.device,
+                                channels=("side",), source=system.source, labels=("source", label), progress=False,
+                                outputs=rendered)["side"]
         write_video(frames, self.folder.path / f"video{stamp}.mp4", fps=sc.video_fps)
         if not self.scene.ndc:  # NDC: depth is NDC t, warping not implemented: view_consistency_error stays None
             Kd = K.to(self.scene.device)
-            metrics["view_consistency_error"] = view_consistency(sty_frames, Kd, c2ws)
-            metrics["view_consistency_error_source"] = view_consistency(src_frames, Kd, c2ws)
+            metrics["view_consistency_error"] = view_consistency(rendered["rendered"], Kd, c2ws)
+            metrics["view_consistency_error_source"] = view_consistency(rendered["source"], Kd, c2ws)
         return metrics
 
     def compare_meshes(self, system: Any) -> dict[str, Any]:
