@@ -112,12 +112,12 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     import torch
 
     from nerfart_plugin.systems.base import build_renderer
-    from nerfart_plugin.run.factories import typed
+    from nerfart_plugin.config.schema import parse_config
     from nerfart_plugin.utils.device import to_device
     from nerfart_plugin.data.setup import SceneSetup
     from nerfart_plugin.utils.device import pick_device
 
-    c, _ = typed(common.compose(["stage=reconstruct", *payload["overrides"]]))
+    c, _ = parse_config(common.compose(["stage=reconstruct", *payload["overrides"]]))
     device = pick_device(c.device)
     torch.manual_seed(0)
     rc = c.render

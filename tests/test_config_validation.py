@@ -264,7 +264,7 @@ def test_unknown_keys_suggest_the_closest_valid_key():
     assert "did you mean stylize.num_negatives?" in error_of("+stylize.num_negative=3")
     text = error_of("+render.new_key=1")
     assert text.startswith("render.new_key=1: unknown setting") and "render.num_samples" in text
-    assert "guidance.clip" in error_of("+guidance.clp={model: x}")
+    assert "did you mean guidance.pretrained?" in error_of("+guidance.pretraind=x")
 
 
 def test_every_key_the_code_reads_has_a_default():

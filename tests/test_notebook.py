@@ -49,7 +49,7 @@ def test_notebook_structure():
     assert 'GUIDANCE = "toy"' in src  # runs anywhere by default
     text = "\n".join(c.source for c in nb.cells)
     assert (
-        "from nerfart_plugin.run.factories import load_config" in text
+        "from nerfart_plugin.config.compose import load_config" in text
         and "from nerfart_plugin.run.pipeline import Pipeline" in text
         and "from nerfart_plugin.api import open_run" in text
         and "._" not in text  # the public API only

@@ -49,7 +49,7 @@ def test_open_run_reads_a_finished_reconstruction_back(nerf_final):
     from nerfart_plugin.api import open_run
 
     run = open_run(nerf_final.parent, device="cpu")
-    assert run.config.backbone["name"] == "nerf" and run.config.reconstruct.steps == 12 and "psnr" in run.metrics
+    assert run.config.backbone.name == "nerf" and run.config.reconstruct.steps == 12 and "psnr" in run.metrics
     assert run.renderer.field.bound == 1.0 and run.checkpoint == nerf_final
     rays = {"rays_o": torch.tensor([[0.0, 0.0, -3.0]]), "rays_d": torch.tensor([[0.0, 0.0, 1.0]]),
             "near": torch.tensor([0.5]), "far": torch.tensor([5.0])}

@@ -28,6 +28,7 @@ from nerfart_plugin.data.setup import decide_setup, SceneSetup
 from nerfart_plugin.fields import occupancy_scores_opacity
 from nerfart_plugin.guidance import default_negative_threshold
 from nerfart_plugin.guidance.style import build_style, Style
+from nerfart_plugin.results.run import Run
 from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.systems.checkpoints import check_fits, checkpoint_meta, load_checkpoint, META_KEY, prefixed_state
 from nerfart_plugin.systems.reconstruction import ReconstructionSystem
@@ -156,3 +157,13 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     views = scene.views(scene.scene.train_ids, sc.resolution)
     return StylizationSystem(c, scene.setup, style, source_state, views, settings=sc,
                              out_dir=str(out_dir) if out_dir is not None else None)
+
+
+def checkpoint_run(ckpt: Path, scene: SceneContext) -> Run:
+    """A reconstruction checkpoint read as a :class:`~nerfart_plugin.results.run.Run` of ``scene``'s settings
+    (``stage=export source_checkpoint=...``): read without running code and checked to fit them
+    (:func:`load_renderer_state`), so a checkpoint of other settings is named with what differs."""
+    renderer = build_renderer(scene.cfg, scene.setup)
+    renderer.load_state_dict(load_renderer_state(ckpt, scene))
+    return Run(ckpt.parent, ckpt, "reconstruction", scene.cfg, {}, renderer.to(scene.device).eval(), scene.cameras,
+               scene.device)

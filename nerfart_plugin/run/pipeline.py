@@ -159,7 +159,7 @@ class Pipeline:
     def export(self) -> None:
         """``stage=export``: meshes from ``source_checkpoint`` (or the cached reconstruction)."""
         ckpt = Path(self.cfg.source_checkpoint) if self.cfg.source_checkpoint else self.recon_dir / "final.ckpt"
-        self.results["export"] = ExportStage(self.cfg, ckpt).run().summary
+        self.results["export"] = ExportStage(self.cfg, ckpt, self._loaded()).run().summary
 
     def render(self) -> None:
         """``stage=render``: videos of ``render.run``, else of this config's finished stylization (with a prompt)

@@ -8,6 +8,7 @@ from typing import Any, Optional
 
 from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export.run_meshes import export_mesh
+from nerfart_plugin.run.factories import SceneContext, checkpoint_run
 from nerfart_plugin.run.stages.base import StageResult, blended_run
 
 
@@ -22,17 +23,19 @@ class MeshTarget:
 
 class ExportStage:
     """``stage=export``: meshes of the run of ``checkpoint`` (at ``strength``), or of the ``mix``, into
-    ``<its folder>/mesh/export-<name>-r<resolution><blend tag>.*`` (the export settings of ``cfg``)."""
+    ``<its folder>/mesh/export-<name>-r<resolution><blend tag>.*`` (the export settings of ``cfg``). With the
+    run's ``scene`` and no blend, the checkpoint is read as a run of the scene's settings, checked to fit them."""
 
-    def __init__(self, cfg: Any, checkpoint: Optional[Path]) -> None:
-        self.cfg = cfg
+    def __init__(self, cfg: Any, checkpoint: Optional[Path], scene: Optional[SceneContext] = None) -> None:
+        self.cfg, self.scene = cfg, scene
         self.checkpoint = None if checkpoint is None else Path(checkpoint)
 
     def run(self) -> StageResult:
         if not self.cfg.mix.runs and not self.checkpoint.exists():
             raise NerfArtError(f"stage=export: no checkpoint at {self.checkpoint}. Run stage=reconstruct first or pass "
                                "source_checkpoint=/path/to/final.ckpt.")
-        run = blended_run(self.cfg, self.checkpoint)
+        blend = self.cfg.mix.runs or self.cfg.strength != 1.0 or self.scene is None
+        run = blended_run(self.cfg, self.checkpoint) if blend else checkpoint_run(self.checkpoint, self.scene)
         ckpt = run.checkpoint
         stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{run.tag}"
         mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
