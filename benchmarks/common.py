@@ -15,9 +15,9 @@
 from __future__ import annotations
 
 import argparse
-import logging
 import datetime as _dt
 import json
+import logging
 import os
 import platform
 import re

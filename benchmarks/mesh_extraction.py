@@ -25,10 +25,10 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
-from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF
-from nerfart_plugin.export.compare import chamfer_to_analytic
 from benchmarks import common
+from nerfart_plugin.export.compare import chamfer_to_analytic
 from nerfart_plugin.export.mesh import MeshExtractor
+from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF
 
 log = logging.getLogger("mesh_extraction")
 NAME = "mesh_extraction"

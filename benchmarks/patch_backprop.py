@@ -111,11 +111,10 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     """Child: build the field, warm up, then time one ``mode`` step at ``size`` and report peak memory."""
     import torch
 
-    from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.config.schema import parse_config
-    from nerfart_plugin.utils.device import to_device
     from nerfart_plugin.data.setup import SceneSetup
-    from nerfart_plugin.utils.device import pick_device
+    from nerfart_plugin.systems.base import build_renderer
+    from nerfart_plugin.utils.device import pick_device, to_device
 
     c, _ = parse_config(common.compose(["stage=reconstruct", *payload["overrides"]]))
     device = pick_device(c.device)

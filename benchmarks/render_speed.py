@@ -67,8 +67,8 @@ def measure(scene: Any, state: dict, samples: list[int], views: int, reps: int) 
     """Seconds per view, PSNR vs the 256-sample reference and evaluations per ray, per (mode, K)."""
     import torch
 
-    from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.objectives.losses import psnr
+    from nerfart_plugin.systems.base import build_renderer
 
     r = build_renderer(scene.cfg, scene.setup)
     r.load_state_dict(state)

@@ -276,8 +276,8 @@ def spearman(xs: Sequence[float], ys: Sequence[float]) -> float:
 
 def measure_mix(a_dir: Path, b_dir: Path, judge: Any) -> dict[str, Any]:
     from nerfart_plugin.api import mix, open_run
-    from nerfart_plugin.utils.images import save_image, side_by_side
     from nerfart_plugin.guidance.imagenet import imagenet_classes
+    from nerfart_plugin.utils.images import save_image, side_by_side
 
     a, b = open_run(a_dir, device="cpu"), open_run(b_dir, device="cpu")
     half = mix([a, b], [0.5, 0.5])

@@ -98,9 +98,9 @@ class Context:
     """Scene, setup and source weights shared by every run (built through :mod:`nerfart_plugin.run.factories`)."""
 
     def __init__(self, overrides: list[str], source_checkpoint: Optional[Path], source: str = "fresh") -> None:
-        from nerfart_plugin.systems.base import build_renderer
         from nerfart_plugin.run.factories import build_scene, load_renderer_state
         from nerfart_plugin.run.stages.reconstruct import ReconstructStage
+        from nerfart_plugin.systems.base import build_renderer
 
         self.base = overrides
         self.occupied: Optional[float] = None
@@ -134,9 +134,9 @@ def samples_fidelity(ctx: "Context", samples: list[int], resolution: Optional[in
     """Part 0: PSNR of K-sample renders of the source against a 256-sample render, and seconds per view."""
     import torch
 
-    from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.objectives.losses import psnr
     from nerfart_plugin.rendering.two_pass import render_fixed_samples
+    from nerfart_plugin.systems.base import build_renderer
 
     r = build_renderer(ctx.scene.cfg, ctx.scene.setup)
     r.load_state_dict(ctx.source_state)
@@ -169,8 +169,8 @@ def run_steps(ctx: Context, overrides: list[str], steps: int, guidance=None, per
     """``steps`` stylization steps toward ``prompt`` with the composed config; per-step timings (+ CLIP score)."""
     import lightning as L
 
-    from nerfart_plugin.objectives.evaluation import clip_scores
     from nerfart_plugin.guidance.style import build_style
+    from nerfart_plugin.objectives.evaluation import clip_scores
     from nerfart_plugin.run.factories import build_stylization_system
     from nerfart_plugin.run.fit import train_steps
 

@@ -53,8 +53,8 @@ SCREENSHOT = ROOT / "docs" / "images" / "viewer.png"
 def frame_costs(folder: Path, repeats: int) -> dict[str, Any]:
     from nerfart_plugin.api import open_run
     from nerfart_plugin.viewer.cameras import capture_camera
-    from nerfart_plugin.viewer.sources import RunField, ViewSettings
     from nerfart_plugin.viewer.schedule import FrameSchedule
+    from nerfart_plugin.viewer.sources import RunField, ViewSettings
 
     run = open_run(folder, device="cpu")
     field = RunField(run)
@@ -88,11 +88,11 @@ def frame_breakdown(folder: Path, side: int = 256, repeats: int = 5) -> dict[str
     cheaper settings with their distance from the default frame (PSNR). Median seconds of ``repeats``."""
     import torch
 
+    from benchmarks.stylization import timed
     from nerfart_plugin.api import open_run
     from nerfart_plugin.data.rays import camera_batch
     from nerfart_plugin.objectives.losses import psnr
     from nerfart_plugin.viewer.cameras import capture_camera, render_path
-    from benchmarks.stylization import timed
     from nerfart_plugin.viewer.sources import VIEW_CHUNK
 
     run = open_run(folder, device="cpu")

@@ -24,8 +24,13 @@ import hydra
 from omegaconf import DictConfig
 
 from nerfart_plugin.config.compose import config_dir
-from nerfart_plugin.config.overrides import PrimaryConfig, normalize_overrides  # noqa: F401  (public: used by tests)
+from nerfart_plugin.config.overrides import PrimaryConfig, normalize_overrides, override_value  # noqa: F401
 from nerfart_plugin.config.plugins import searchpath_overrides
+from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
+from nerfart_plugin.run import sweep
+from nerfart_plugin.run.sweep import objective
+from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -41,11 +46,10 @@ def _app(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
-    from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
+    # the training stack and the viewer (torch, Lightning, viser) load here, so that --help and a bad argument
+    # answer without them
     from nerfart_plugin.run.pipeline import run
     from nerfart_plugin.viewer.live import live_viewer
-    from nerfart_plugin.run.sweep import objective
-    from nerfart_plugin.utils.io import atomic_write_json
 
     try:
         results = run(cfg, output_dir=Path(HydraConfig.get().runtime.output_dir), live=live_viewer)
@@ -77,23 +81,17 @@ _NO_JOB_FLAGS = ("--help", "-h", "--hydra-help", "--cfg", "-c", "--info", "-i", 
 def check_output_root(argv: list[str]) -> None:
     """ConfigError before Hydra writes its run folder under ``output_root`` when that cannot be written
     (a read-only folder, a file in the way, a missing parent that cannot be created, a full disk)."""
-    from nerfart_plugin.config.overrides import override_value
-    from nerfart_plugin.utils.io import check_writable_dir
 
     if any(a in _NO_JOB_FLAGS for a in argv):
         return
     root = override_value(argv, "output_root")
     if root is None:
-        from nerfart_plugin.config.schema import RunConfig
-
         root = RunConfig.model_fields["output_root"].default
     if isinstance(root, str) and "${" not in root:
         check_writable_dir(root, "output_root", create=False)
 
 
 def main() -> None:
-    from nerfart_plugin.errors import ConfigError
-
     try:
         argv = normalize_overrides(sys.argv[1:])
         argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.config.plugins)
@@ -102,8 +100,6 @@ def main() -> None:
         log.error("ConfigError: %s", exc)
         sys.exit(2)
     sys.argv = [sys.argv[0], *argv]
-    from nerfart_plugin.run import sweep
-
     sweep.failed_jobs.clear()
     _app()
     if sweep.failed_jobs:  # a multirun kept going past failed jobs; schedulers and scripts see it in the exit code

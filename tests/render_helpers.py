@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 
 from nerfart_plugin.data.rays import camera_batch
-from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.data.setup import SceneSetup
+from nerfart_plugin.systems.base import build_renderer
 
 
 def tiny_renderer(backbone: str, occupancy: int, samples: int = 12, **backbone_kw: object) -> torch.nn.Module:
@@ -71,8 +71,12 @@ def check_retained_graph_matches_the_patches(backbone: str, occupancy: int, devi
     parameter gradient (1e-4 relative), on an opaque field whose rays stop early."""
     import pytest
 
-    from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
-                                                   render_with_graph)
+    from nerfart_plugin.rendering.two_pass import (
+        backprop_patches,
+        backprop_retained,
+        render_fixed_samples,
+        render_with_graph,
+    )
     from nerfart_plugin.utils.device import to_device
 
     torch.manual_seed(0)

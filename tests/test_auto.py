@@ -5,11 +5,10 @@ from __future__ import annotations
 import pytest
 import torch
 from omegaconf import OmegaConf
+from pipeline_helpers import composed
 
 from nerfart_plugin.config.auto import AUTO_SETTINGS, component_choices, recorded, setting_of
 from nerfart_plugin.config.compose import config_dir
-
-from pipeline_helpers import composed
 
 
 def _auto_keys(node: dict, prefix: str = "") -> set[str]:

@@ -8,8 +8,8 @@ the scripts run end to end and produce a section with its table.
 from __future__ import annotations
 
 import importlib.util
-import re
 import json
+import re
 from pathlib import Path
 
 import pytest

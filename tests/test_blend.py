@@ -9,12 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from pipeline_helpers import run_cli, tiny_cfg
 
-from nerfart_plugin.results.blend import blend_states, blend_tag, check_strength, check_weights
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 from nerfart_plugin.errors import ConfigError, NerfArtError
-
-from pipeline_helpers import run_cli, tiny_cfg
+from nerfart_plugin.results.blend import blend_states, blend_tag, check_strength, check_weights
 
 
 def test_blend_states_is_the_weighted_delta_and_copies_what_it_must_not_blend():
@@ -174,12 +173,11 @@ def test_a_run_records_what_each_auto_setting_became(styles):
     import json
 
     import yaml
+    from test_auto import _auto_keys
 
     from nerfart_plugin.guidance import default_negative_threshold
     from nerfart_plugin.guidance.toy import ToyGuidance
     from nerfart_plugin.utils.device import pick_device
-
-    from test_auto import _auto_keys
 
     run = styles["red"]
     block = json.loads((run / "metrics.json").read_text())["auto"]
@@ -240,7 +238,6 @@ def test_the_strength_benchmark_dials_shape_and_colour_apart(styles):
     """``benchmarks/strength.py``'s other parameterizations: the colour net at one strength, the shape's tensors
     (what ``stylize.freeze_geometry`` freezes) at another, with the grid estimated for the result."""
     from benchmarks import strength
-
     from nerfart_plugin.api import open_run
 
     run = open_run(styles["red"], device="cpu")
@@ -262,11 +259,10 @@ def test_the_strength_benchmark_sets_the_dial_beside_training(tmp_path):
     """``benchmarks/strength.py --vs-training``: the stylization trained again with snapshots, each dial strength set
     beside the snapshot of the closest judge score, with how much of the source each keeps; a finished run in the
     root (no snapshots taken) is refused."""
-    from benchmarks import strength
-
-    from nerfart_plugin.objectives.evaluation import ImageNetJudge
-
     from pipeline_helpers import TINY
+
+    from benchmarks import strength
+    from nerfart_plugin.objectives.evaluation import ImageNetJudge
 
     overrides = [f"output_root={tmp_path}", f"data.path={DEFAULT_SCENE}", *TINY, *STYLE, "prompt=zebra"]
     v = strength.dial_vs_training("zebra", overrides, ImageNetJudge(), every=2)

@@ -13,11 +13,10 @@ import pytest
 import yaml
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pipeline_helpers import composed, run_cli, run_cli_subprocess
 
 from nerfart_plugin.__main__ import normalize_overrides
 from nerfart_plugin.config.compose import config_dir, group_options
-
-from pipeline_helpers import composed, run_cli, run_cli_subprocess
 
 REPO = Path(__file__).resolve().parents[1]
 GROUPS = ("backbone", "data", "encoding", "experiment", "guidance", "preset")
@@ -86,9 +85,9 @@ def test_plus_data_at_package_parses_as_in_hydra():
 def test_plus_data_at_package_composes_a_second_data_config():
     """``+data@foo=h3ds`` is Hydra's own: the composed config gains a second data package ``foo`` (the
     first ``data`` untouched), which the schema then names as an unknown top-level key."""
-    from nerfart_plugin.errors import ConfigError
     from nerfart_plugin.config.compose import load_config
     from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.errors import ConfigError
 
     cfg = load_config(normalize_overrides(["data=llff", "data.path=x", "+data@foo=h3ds"]))
     assert cfg.foo.name == "h3ds" and cfg.data.name == "llff"

@@ -12,16 +12,17 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
+from pipeline_helpers import composed, run_cli_subprocess
 from pydantic import BaseModel
 
-from nerfart_plugin.config import (sections as config_components, compose as config_help, issues as config_issues,
-    schema)
+from nerfart_plugin.config import compose as config_help
+from nerfart_plugin.config import issues as config_issues
+from nerfart_plugin.config import schema
+from nerfart_plugin.config import sections as config_components
 from nerfart_plugin.config.compose import config_dir, group_options
 from nerfart_plugin.config.migrate import CONFIG_FORMAT, to_format_1
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.run.pipeline import Pipeline, check_stage
-
-from pipeline_helpers import composed, run_cli_subprocess
 
 
 def _plain_of(c):
@@ -507,8 +508,8 @@ def test_every_stage_has_one_plan():
     """stage= is dispatched through one table (pipeline.PLANS): every choice of the schema has its plan."""
     from typing import get_args
 
-    from nerfart_plugin.run.pipeline import PLANS
     from nerfart_plugin.config.schema import RunConfig
+    from nerfart_plugin.run.pipeline import PLANS
 
     assert sorted(PLANS) == sorted(get_args(RunConfig.model_fields["stage"].annotation))
     assert [p for p, plan in PLANS.items() if plan.needs_prompt] == ["stylize", "all", "preview"]

@@ -37,8 +37,8 @@ def test_every_loader_declares_its_settings_and_refuses_unknown_options():
     """Each loader's typed Config is its settings (what the schema checks and --help lists); an unknown or
     mistyped option, from Python or from the command line, is one ConfigError with the closest valid name."""
     from nerfart_plugin.config.components import config_of
-    from nerfart_plugin.errors import ConfigError
     from nerfart_plugin.config.sections import check_section
+    from nerfart_plugin.errors import ConfigError
 
     for kind in registry.names("data"):
         fields = config_of(registry.get("data", kind)).model_fields

@@ -15,16 +15,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from camera_helpers import interior_error, look_at, pattern_seen_by, pinhole_pattern
 from PIL import Image
 
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import default_scene_path
-from nerfart_plugin.data.loader import LoaderContext
 from nerfart_plugin.data.h3ds import read_cameras_npz
+from nerfart_plugin.data.loader import LoaderContext
 from nerfart_plugin.data.rays import pixel_rays, rays_for_views
 from nerfart_plugin.errors import DataError
-
-from camera_helpers import interior_error, look_at, pattern_seen_by, pinhole_pattern
 
 GL = np.diag([1.0, -1.0, -1.0, 1.0])  # OpenCV <-> OpenGL camera axes (its own inverse)
 
@@ -173,9 +172,9 @@ def test_blender_rgba_scene(tmp_path, head):
 
 
 def test_background_colour_comes_from_the_config(tmp_path, head):
-    from nerfart_plugin.run.pipeline import Pipeline
-
     from pipeline_helpers import tiny_cfg
+
+    from nerfart_plugin.run.pipeline import Pipeline
 
     _, K, c2w, _ = head
     root = _blender_scene(tmp_path / "b", K, c2w, splits=(("train", range(0, 8)),))

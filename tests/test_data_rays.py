@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from nerfart_plugin.cameras.orbits import orbit_path
 from nerfart_plugin.cameras.capture import scale_intrinsics
+from nerfart_plugin.cameras.orbits import orbit_path
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import default_scene_path
 from nerfart_plugin.data.rays import ndc_rays, pixel_rays, rays_for_views

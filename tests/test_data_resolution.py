@@ -6,11 +6,12 @@ from __future__ import annotations
 import logging
 
 import pytest
+from pipeline_helpers import composed
+
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.datamodule import SceneDataModule, default_scene_path
 from nerfart_plugin.data.images import choose_resolution
 from nerfart_plugin.errors import ConfigError
-from pipeline_helpers import composed
 
 
 @pytest.mark.parametrize("kind", ["h3ds", "selfie", "llff", "nerfstudio"])

@@ -13,14 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from camera_helpers import interior_error, look_at, pattern_seen_by, pinhole_pattern
 from PIL import Image
 
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.colmap import project, read_colmap_model, reprojection_errors
 from nerfart_plugin.data.undistort import colmap_camera, colmap_maps, opencv_maps, remap
 from nerfart_plugin.errors import DataError
-
-from camera_helpers import interior_error, look_at, pattern_seen_by, pinhole_pattern
 
 W, H = 160, 120
 FX, FY, CX, CY = 110.0, 112.0, 81.3, 58.6

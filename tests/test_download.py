@@ -34,8 +34,8 @@ def test_download_checks_every_file_resumes_and_loads(tmp_path, caplog):
     before = {f: f.stat().st_mtime_ns for f in (folder / "matte").iterdir()}
     download("girl", tmp_path, mirror=str(MIRROR))
     assert image.stat().st_size > 1000 and before == {f: f.stat().st_mtime_ns for f in (folder / "matte").iterdir()}
-    from nerfart_plugin.run.factories import build_scene
     from nerfart_plugin.config.compose import load_config
+    from nerfart_plugin.run.factories import build_scene
 
     scene = build_scene(load_config(["data=h3ds", f"data.path={folder}", "data.resolution=64"])).scene
     assert scene.num_images == 31

@@ -7,9 +7,9 @@ import pytest
 import trimesh
 
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF
 from nerfart_plugin.export.compare import SurfaceDistance, compare_meshes, displacement_mesh, vertex_distances
 from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
+from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF
 
 N = 20_000
 

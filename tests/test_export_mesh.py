@@ -8,9 +8,9 @@ import torch
 import trimesh
 
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.export.compare import chamfer_to_analytic
 from nerfart_plugin.export.mesh import EmptyLevelSetError, MeshExtractor, export_mesh, view_directions
+from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF, TorusSDF, UnionSDF
 
 
 def extractor(**kw) -> MeshExtractor:
@@ -162,8 +162,8 @@ def test_a_stylization_copies_its_sources_mesh_instead_of_extracting_it_again(tm
     from types import SimpleNamespace
 
     import nerfart_plugin.export.mesh as mesh_module
-    from nerfart_plugin.export.run_meshes import export_source_mesh
     from nerfart_plugin.config.schema import ExportConfig
+    from nerfart_plugin.export.run_meshes import export_source_mesh
 
     def scene(**export) -> SimpleNamespace:
         cfg = SimpleNamespace(export=ExportConfig(resolution=24, formats=["ply", "obj"], frame="normalized",

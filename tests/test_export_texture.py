@@ -10,8 +10,8 @@ import trimesh
 pytest.importorskip("xatlas")
 
 from nerfart_plugin.export import MeshExtractor  # noqa: E402
-from nerfart_plugin.fields.analytic import SphereSDF  # noqa: E402
 from nerfart_plugin.export.texture import bake_texture, export_textured, rasterize_atlas  # noqa: E402
+from nerfart_plugin.fields.analytic import SphereSDF  # noqa: E402
 
 
 @pytest.fixture(scope="module")

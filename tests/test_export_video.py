@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from nerfart_plugin.errors import DataError
-from nerfart_plugin.utils.images import image_grid, save_image_grid, side_by_side, to_uint8
 from nerfart_plugin.export.video import write_video
+from nerfart_plugin.utils.images import image_grid, save_image_grid, side_by_side, to_uint8
 
 
 def _frames(n: int, h: int, w: int) -> list[np.ndarray]:

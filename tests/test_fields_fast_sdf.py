@@ -7,8 +7,8 @@ import torch
 
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields import OccupancyGrid, build_field
-from nerfart_plugin.rendering import VolumeRenderer
 from nerfart_plugin.fields.opacity import neus_alpha, neus_alpha_sections
+from nerfart_plugin.rendering import VolumeRenderer
 
 GRID = {"name": "grid", "resolution": 16, "n_components": 4, "out_features": 8}
 FAST = {"color_normal": False, "grad_samples": 0.25, "hidden_dim": 32, "radius": 0.5}

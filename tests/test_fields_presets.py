@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import pytest
 from omegaconf import OmegaConf
+from pipeline_helpers import composed
 
 from nerfart_plugin.fields import build_field
-from pipeline_helpers import composed
 
 
 def _cfg(*overrides: str) -> dict:

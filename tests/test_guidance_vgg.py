@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-
 import pytest
 import torch
 
-from nerfart_plugin.guidance.base import WeightsPolicy
-from nerfart_plugin.objectives import losses
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import EdgePerceptual, Perceptual, build_perceptual
+from nerfart_plugin.guidance.base import WeightsPolicy
+from nerfart_plugin.objectives import losses
 
 
 def test_vgg_random_feature_shapes_and_truncation() -> None:

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import torch
 
-from nerfart_plugin.guidance.style import Style
-
 from nerfart_plugin.data.rays import camera_batch
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.guidance import ToyGuidance
+from nerfart_plugin.guidance.style import Style
 from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer, step_seed
 from nerfart_plugin.systems.reconstruction import RECONSTRUCTION_LOSSES, ReconstructionSystem
-from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.systems.stylization import StylizationSystem
 from nerfart_plugin.systems.stylization_losses import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES
 

@@ -10,8 +10,8 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from nerfart_plugin.objectives import losses
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.objectives import losses
 
 
 def _brute_weight_reg(w: torch.Tensor, d: torch.Tensor) -> torch.Tensor:

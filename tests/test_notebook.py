@@ -6,7 +6,6 @@ import base64
 from pathlib import Path
 
 import pytest
-
 from pipeline_helpers import TINY_TOY
 
 nbformat = pytest.importorskip("nbformat")

@@ -13,12 +13,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from pipeline_helpers import cli_args, tiny_cfg
 
 from nerfart_plugin.errors import TrainingDivergedError
 from nerfart_plugin.run.pipeline import Pipeline
 from nerfart_plugin.systems.callbacks import check_finite_losses
-
-from pipeline_helpers import cli_args, tiny_cfg
 
 pytestmark = pytest.mark.slow
 REPO = Path(__file__).resolve().parents[1]

@@ -8,7 +8,6 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from pipeline_helpers import cli_args, run_cli_subprocess
 
 PLUGIN_MODULE = '''

@@ -7,10 +7,9 @@ from pathlib import Path
 
 import pytest
 from PIL import Image
+from pipeline_helpers import run_cli, tiny_cfg
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-
-from pipeline_helpers import run_cli, tiny_cfg
 
 TINY_STYLE = ["reconstruct.steps=20", "stylize.lr=0.01", "guidance=toy", "data.resolution=32"]
 

@@ -18,13 +18,12 @@ from pathlib import Path
 
 import pytest
 import torch
+from pipeline_helpers import REPO, cli_args, run_cli, run_cli_subprocess, tiny_cfg
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 from nerfart_plugin.errors import CheckpointError, ConfigError, NerfArtError, RunInterrupted, RunLockedError
 from nerfart_plugin.run.pipeline import Pipeline
 from nerfart_plugin.utils.lock import lock_path
-
-from pipeline_helpers import REPO, cli_args, run_cli, run_cli_subprocess, tiny_cfg
 
 RECON_SETTINGS = ["backbone=nerf", "reconstruct.steps=12", "export.enabled=false"]
 RECON = ["stage=reconstruct", *RECON_SETTINGS]
@@ -392,8 +391,8 @@ def test_an_incompatible_last_ckpt_is_not_resumed(tmp_path, nerf_final):
 
 @pytest.mark.slow
 def test_checkpoints_of_version_0_1_0_with_a_scene_setup_object_still_load(tmp_path, nerf_final):
-    from nerfart_plugin.systems.checkpoints import load_checkpoint
     from nerfart_plugin.data.setup import SceneSetup
+    from nerfart_plugin.systems.checkpoints import load_checkpoint
 
     ckpt = torch.load(nerf_final, map_location="cpu", weights_only=True)
     ckpt.pop("nerfart")
@@ -496,10 +495,10 @@ def test_what_stylization_will_need_is_checked_before_the_reconstruction(tmp_pat
 def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, caplog):
     """Truncating a finished run's final.ckpt used to make the same command say "already complete";
     now the damage is found, the file kept aside, and the run trained again from its last.ckpt."""
+    from pipeline_helpers import tiny_cfg
+
     from nerfart_plugin.data.datamodule import DEFAULT_SCENE
     from nerfart_plugin.run.pipeline import run
-
-    from pipeline_helpers import tiny_cfg
 
     cfg = tiny_cfg(tmp_path, DEFAULT_SCENE, "stage=reconstruct", "reconstruct.steps=4", "export.enabled=false")
     folder = Path(run(cfg)["reconstruction"]["dir"])

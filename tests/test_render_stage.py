@@ -10,13 +10,12 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 import torch
-
 from pipeline_helpers import run_cli, tiny_cfg
 
-from nerfart_plugin.data import load_scene
 from nerfart_plugin.cameras.capture import CaptureCameras, viewer_cameras
-from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 from nerfart_plugin.cameras.path import read_camera_path, resolve_path, write_camera_path
+from nerfart_plugin.data import load_scene
+from nerfart_plugin.data.datamodule import DEFAULT_SCENE
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.rendering.frames import colorize_depth, depth_normals
 

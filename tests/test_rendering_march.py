@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import pytest
 import torch
+from render_helpers import front_view, tiny_renderer
 
 from nerfart_plugin.rendering.two_pass import render_fixed_samples
-from render_helpers import front_view, tiny_renderer
 
 #: backbones made opaque at init (a sharp sphere, a dense fog), so rays terminate
 OPAQUE = {
@@ -128,7 +128,7 @@ def test_few_view_samples_only_where_an_occupancy_grid_places_them() -> None:
     """render.view_samples (and stylize.num_samples) apply where the occupancy grid puts the samples at the
     surface; without a grid (NDC captures: uniform samples over the frustum) full views keep num_samples,
     the density the field was trained with."""
-    from render_helpers import build_renderer, SceneSetup
+    from render_helpers import SceneSetup, build_renderer
 
     view = {**front_view(12, 10, 12.0), "H": 12, "W": 10}
     for occupancy, want in ((8, 6), (0, 32)):

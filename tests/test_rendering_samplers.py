@@ -5,12 +5,12 @@ from __future__ import annotations
 import pytest
 import torch
 
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields import OccupancyGrid, build_field
+from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF
 from nerfart_plugin.rendering import VolumeRenderer, occupancy_samples, ray_aabb, stratified_samples, weighted_samples
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.data.setup import SceneSetup
-from nerfart_plugin.fields.analytic import DensityFromSDF, SphereSDF
 
 
 def _rays(R: int = 64, seed: int = 0, spread: float = 0.15) -> dict:

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from nerfart_plugin.fields.field import Field
-from nerfart_plugin.rendering import VolumeRenderer, volume_weights, weights_from_alpha
 from nerfart_plugin.fields.opacity import neus_alpha, volsdf_density
+from nerfart_plugin.rendering import VolumeRenderer, volume_weights, weights_from_alpha
 
 LN2, LN4 = math.log(2.0), math.log(4.0)
 

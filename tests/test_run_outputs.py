@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import trimesh
-
 from pipeline_helpers import tiny_cfg
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE

@@ -10,8 +10,8 @@ import pytest
 import torch
 
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.data.setup import decide_setup
+from nerfart_plugin.errors import ConfigError
 
 RENDER = {"num_samples": 32, "background_model": "auto", "background_color": [1.0, 1.0, 1.0],
           "occupancy": {"enabled": "auto", "resolution": 64}}
@@ -146,8 +146,8 @@ def test_auto_grid_levels_follow_the_backbone(opacity_scores: bool, resolution, 
 def test_auto_grid_levels_reach_the_field_and_old_checkpoints_keep_one() -> None:
     """build_renderer builds the levels the setup decided; a setup saved before encoding.levels existed
     (no grid_levels) rebuilds the one-level grid it was trained with."""
-    from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.data.setup import SceneSetup
+    from nerfart_plugin.systems.base import build_renderer
 
     enc = {"name": "grid", "resolution": "auto", "levels": "auto", "n_components": 2, "out_features": 8}
     s = decide_setup(_scene("object", True), _render(), ndc=False, encoding_cfg=enc)

@@ -10,8 +10,8 @@ from render_helpers import check_sharp_surface_under_autocast
 
 from nerfart_plugin.fields import build_field
 from nerfart_plugin.fields.field import Field
-from nerfart_plugin.rendering import VolumeRenderer, volume_weights, weights_from_alpha
 from nerfart_plugin.fields.opacity import neus_alpha, volsdf_density
+from nerfart_plugin.rendering import VolumeRenderer, volume_weights, weights_from_alpha
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 sigma_st = st.one_of(st.just(0.0), st.just(1e8), st.floats(0.0, 1e8, allow_nan=False))

@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import torch
 
-from nerfart_plugin.guidance.style import Style
-
+from nerfart_plugin.data.rays import camera_batch
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.guidance import ToyGuidance
+from nerfart_plugin.guidance.style import Style
 from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.data.setup import SceneSetup
-from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.systems.stylization import StylizationSystem
 
 BACKBONE = {"name": "volsdf", "hidden_dim": 32, "n_layers": 2, "feature_dim": 16, "radius": 0.3,

@@ -8,11 +8,11 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from pipeline_helpers import TINY_TOY, run_cli
 
 from nerfart_plugin.config.compose import config_dir
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.run.sweep import collect, complete_results, markdown_table, objective
-from pipeline_helpers import TINY_TOY, run_cli
 
 REPO = Path(__file__).resolve().parents[1]
 

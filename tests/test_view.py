@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.export.mesh import MeshExtractor, export_mesh
+from nerfart_plugin.fields.analytic import SphereSDF, TorusSDF, UnionSDF
 from nerfart_plugin.viewer.mesh import load_mesh, main, render_meshes
 
 REPO = Path(__file__).resolve().parents[1]
@@ -38,8 +38,8 @@ def test_opens_on_the_captures_front_view(tmp_path, mesh_files):
     a scene imports triton (through torch), which segfaults once VTK's EGL context exists."""
     import json
 
-    from nerfart_plugin.data import load_scene
     from nerfart_plugin.cameras.capture import viewer_cameras
+    from nerfart_plugin.data import load_scene
     from nerfart_plugin.data.datamodule import DEFAULT_SCENE
     from nerfart_plugin.viewer.mesh import capture_view, find_cameras
 

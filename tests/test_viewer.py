@@ -15,13 +15,20 @@ import torch
 from nerfart_plugin.cameras.capture import CaptureCameras
 from nerfart_plugin.cameras.path import read_camera_path
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.viewer.cameras import (ViewCamera, capture_camera, from_viser, matrix_to_wxyz, render_path,
-                                           to_viser, wxyz_to_matrix)
-from nerfart_plugin.viewer.sources import LiveField, ViewSettings, split_frame, timed
+from nerfart_plugin.viewer.cameras import (
+    ViewCamera,
+    capture_camera,
+    from_viser,
+    matrix_to_wxyz,
+    render_path,
+    to_viser,
+    wxyz_to_matrix,
+)
 from nerfart_plugin.viewer.jobs import TabRenderer
 from nerfart_plugin.viewer.keyframes import catmull_rom, interpolate, save_path
 from nerfart_plugin.viewer.live import LiveViewer, TrainingControl, readouts
 from nerfart_plugin.viewer.schedule import FrameSchedule, wait_for_share
+from nerfart_plugin.viewer.sources import LiveField, ViewSettings, split_frame, timed
 
 
 def capture(n: int = 6, H: int = 60, W: int = 80, scale: float = 0.5) -> CaptureCameras:

@@ -13,10 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pipeline_helpers import tiny_cfg
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
-
-from pipeline_helpers import tiny_cfg
 
 pytestmark = pytest.mark.slow
 
@@ -72,9 +71,10 @@ def test_the_run_field_renders_the_run_its_source_blends_and_splits(styles):
 
 
 def test_the_viewer_cli_refuses_a_missing_run_without_a_traceback(tmp_path):
-    from pipeline_helpers import cli_env
     import subprocess
     import sys
+
+    from pipeline_helpers import cli_env
 
     proc = subprocess.run([sys.executable, "-m", "nerfart_plugin.viewer", str(tmp_path / "nope")], env=cli_env(),
                           capture_output=True, text=True, timeout=120)

@@ -11,12 +11,11 @@ from typing import Any, Sequence
 from omegaconf import DictConfig, OmegaConf
 from pydantic import BaseModel
 
-from nerfart_plugin.config.sections import TOP_LEVEL
 from nerfart_plugin.config.issues import _model_in, show
+from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.config.sections import TOP_LEVEL
 from nerfart_plugin.config.types import changes_results
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.config.schema import RunConfig
-
 
 #: name of the schema's defaults in Hydra's ConfigStore (first entry of conf/config.yaml's defaults list)
 SCHEMA_NODE = "nerfart_schema"

@@ -32,6 +32,8 @@ import re
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Optional
 
+from omegaconf import OmegaConf
+
 from nerfart_plugin.config.compose import config_dir, primary_keys
 from nerfart_plugin.errors import ConfigError
 
@@ -201,7 +203,6 @@ def _composed_keys(root: str, overrides: tuple[str, ...]) -> tuple[frozenset[str
     selections only). Remembered per process: an in-process caller (a notebook, the test suite) that normalizes
     many command lines composes each selection once."""
     from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
 
     with initialize_config_dir(config_dir=root, version_base="1.3"):
         cfg = compose("config", overrides=list(overrides), return_hydra_config=True)

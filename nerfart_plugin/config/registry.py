@@ -51,7 +51,6 @@ def register(kind: str, name: str) -> Callable[[T], T]:
 
 
 def _load(kind: str) -> dict[str, Any]:
-
     for mod in _PROVIDERS.get(kind, ()):
         importlib.import_module(mod)
     load_components()  # third-party components (entry points, see nerfart_plugin.config.plugins)

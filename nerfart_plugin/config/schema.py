@@ -33,13 +33,23 @@ import typing
 from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
+from omegaconf import DictConfig, OmegaConf
 from pydantic import BaseModel, BeforeValidator, Field, PrivateAttr, SerializeAsAny, ValidationError, field_validator
 
 from nerfart_plugin.config.components import ComponentConfig
-from nerfart_plugin.config.sections import TOP_LEVEL, check_section, section_model, typed_section
 from nerfart_plugin.config.issues import Issue, issues_from, raise_issues
-from nerfart_plugin.config.types import (Color, Float, Fraction, Int, PathText, Seed, Setting, SettingsModel,
-                                         changes_results)
+from nerfart_plugin.config.sections import TOP_LEVEL, check_section, section_model, typed_section
+from nerfart_plugin.config.types import (
+    Color,
+    Float,
+    Fraction,
+    Int,
+    PathText,
+    Seed,
+    Setting,
+    SettingsModel,
+    changes_results,
+)
 from nerfart_plugin.errors import ConfigError
 
 __all__ = [
@@ -577,7 +587,6 @@ def to_plain(cfg: Any) -> dict:
     mapping copied (nested mappings too), None as ``{}``; anything else is a ConfigError."""
     if cfg is None:
         return {}
-    from omegaconf import DictConfig, OmegaConf
 
     if isinstance(cfg, DictConfig):
         return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]

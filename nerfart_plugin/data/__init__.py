@@ -9,9 +9,9 @@ from __future__ import annotations
 from typing import Any
 
 from nerfart_plugin.config import registry
-from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data import h3ds, llff, nerfstudio, selfie  # noqa: F401  (register loaders)
 from nerfart_plugin.data.rays import ndc_rays, pixel_rays, rays_for_views
+from nerfart_plugin.data.scene import Scene
 
 
 def load_scene(kind: str, path: Any, cfg: Any = None, context: Any = None, **options: Any) -> Scene:

@@ -8,6 +8,7 @@ projection and undistortion go through pycolmap's own implementation of the mode
 from __future__ import annotations
 
 import logging
+import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -66,7 +67,6 @@ def _walk(data: bytes, name: str, head: str, per_item: int, named: bool = False)
     fixed fields (``head``, a little-endian struct format), a NUL-terminated name when ``named``, a uint64
     list length and that many entries of ``per_item`` bytes. Raises DataError when a record claims more bytes
     than the file holds."""
-    import struct
 
     if len(data) < 8:
         raise DataError(f"{name} is {len(data)} bytes, too short for a COLMAP model")

@@ -29,9 +29,9 @@ from typing import Any, Optional
 import numpy as np
 
 from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Setting
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     choose_resolution,
     find_mask_folder,
@@ -40,10 +40,10 @@ from nerfart_plugin.data.images import (
     match_masks,
     read_image_set,
 )
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import detect_capture
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import DataError
-from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

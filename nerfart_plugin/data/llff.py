@@ -28,21 +28,21 @@ from typing import Annotated, Any, Optional
 import numpy as np
 
 from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     choose_resolution,
     find_mask_folder,
+    image_size,
     list_images,
     match_masks,
     read_image_set,
-    image_size,
 )
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.errors import DataError
-from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

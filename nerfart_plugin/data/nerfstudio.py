@@ -65,11 +65,12 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
+from PIL import Image
 
 from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import HoldoutEvery, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     IMAGE_EXTS,
     choose_resolution,
@@ -81,11 +82,11 @@ from nerfart_plugin.data.images import (
     target_size,
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, similarity, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, opencv_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -439,8 +440,6 @@ def _mask_source(frames: list[Frame], use_masks: bool, source: Path) -> str:
 
 
 def _has_alpha(path: Path) -> bool:
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             return im.mode in ("RGBA", "LA", "PA", "La", "RGBa") or (im.mode == "P" and "transparency" in im.info)

@@ -32,12 +32,13 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, Optional
 
 import numpy as np
+from PIL import Image
 
 from nerfart_plugin.config.components import configured
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Fraction, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
-from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.images import (
     choose_resolution,
     find_mask_folder,
@@ -47,11 +48,11 @@ from nerfart_plugin.data.images import (
     target_size,
 )
 from nerfart_plugin.data.llff import forward_facing_normalization
+from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points
 from nerfart_plugin.data.scene import CaptureType, Scene
 from nerfart_plugin.data.undistort import UndistortMaps, colmap_maps, remap
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.config.registry import register
 from nerfart_plugin.utils.io import atomic_path, atomic_write_json, hash_files
 
 log = logging.getLogger(__name__)
@@ -65,8 +66,6 @@ SFM_HINT = (
 
 # --------------------------------------------------------------------------- frames
 def _save_png(arr_u8: np.ndarray, path: Path) -> None:
-    from PIL import Image
-
     with atomic_path(path) as tmp:
         Image.fromarray(arr_u8).save(tmp, format="PNG")
 
@@ -77,8 +76,6 @@ def _frame_size(w: int, h: int, long_side: Optional[int]) -> tuple[int, int]:
 
 
 def _shrink(img: Any, long_side: Optional[int]) -> Any:
-    from PIL import Image
-
     size = _frame_size(img.width, img.height, long_side)
     return img if size == img.size else img.resize(size, Image.Resampling.LANCZOS)
 
@@ -95,7 +92,6 @@ def extract_frames(
         DataError: unreadable, zero-length or frameless video.
     """
     import av
-    from PIL import Image
 
     video = Path(video)
     if not video.is_file() or video.stat().st_size == 0:
@@ -162,7 +158,6 @@ def _copy_frames(paths: list[Path], out_dir: Path, max_frames: int, long_side: O
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = []
     for p in paths:
-        from PIL import Image
 
         with Image.open(p) as im:
             size = _frame_size(im.width, im.height, long_side)

@@ -12,9 +12,9 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Optional
 
+from nerfart_plugin.config.schema import ReconstructConfig, RenderConfig, section
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.config.schema import ReconstructConfig, RenderConfig, section
 
 log = logging.getLogger(__name__)
 

@@ -2,8 +2,8 @@
 
 from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 from nerfart_plugin.export.mesh import EmptyLevelSetError, MeshExtractor, export_mesh, remove_small_components
-from nerfart_plugin.utils.images import save_image, save_image_grid, side_by_side
 from nerfart_plugin.export.video import write_video
+from nerfart_plugin.utils.images import save_image, save_image_grid, side_by_side
 
 __all__ = [
     "EmptyLevelSetError",

@@ -25,6 +25,7 @@ the volume is ever allocated. Measured time and memory: ``BENCHMARKS.md``
 
 from __future__ import annotations
 
+import json
 import logging
 import math
 import os
@@ -300,7 +301,6 @@ def export_mesh(mesh: trimesh.Trimesh, path: str | os.PathLike, meta: dict[str, 
 
 def _encode(mesh: trimesh.Trimesh, file_type: str, meta: dict[str, Any] | None) -> bytes:
     """The file's bytes, with ``meta`` written where each format keeps free-form notes."""
-    import json
 
     if not meta:
         data = mesh.export(file_type=file_type)

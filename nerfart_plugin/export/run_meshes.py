@@ -18,6 +18,7 @@ from typing import Any, Optional
 
 import numpy as np
 import torch
+import trimesh
 
 from nerfart_plugin.config.schema import result_settings
 from nerfart_plugin.errors import NerfArtError
@@ -116,7 +117,6 @@ def remember_mesh(stem: Path, mesh: Any, key: str, formats: list[str]) -> None:
 def recall_mesh(stem: Path, key: str) -> Optional[tuple[Any, list[str]]]:
     """The field-frame mesh stored for ``stem`` under ``key`` and the names of its files, when every one of
     them is still there; else None."""
-    import trimesh
 
     npz, meta = _cache(stem)
     try:

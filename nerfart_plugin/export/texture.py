@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 import trimesh
+from PIL import Image
 
 from nerfart_plugin.errors import ConfigError, NerfArtError
 from nerfart_plugin.export.mesh import field_device, view_directions
@@ -139,7 +140,6 @@ def bake_texture(mesh: trimesh.Trimesh, field: Any, size: int = 1024, views: int
         padding: texels by which charts are grown into the empty atlas.
     Returns: a ``trimesh.Trimesh`` with ``TextureVisuals`` (uv, PIL image).
     """
-    from PIL import Image
 
     if not 64 <= int(size) <= 8192:
         raise ConfigError(f"export.texture_size={size}: use 64..8192 pixels.")

@@ -11,13 +11,13 @@ from nerfart_plugin.config import registry
 from nerfart_plugin.config.sections import typed_section
 from nerfart_plugin.fields import encodings, nerf, neus, volsdf  # noqa: F401  (registration)
 from nerfart_plugin.fields.background import EnvironmentMap, build_background
-from nerfart_plugin.fields.field import Field
-from nerfart_plugin.fields.neural import NeuralField
-from nerfart_plugin.fields.sdf import SDFField
 from nerfart_plugin.fields.encodings import build_encoding
+from nerfart_plugin.fields.field import Field
 from nerfart_plugin.fields.nerf import NeRFField
+from nerfart_plugin.fields.neural import NeuralField
 from nerfart_plugin.fields.neus import NeuSField
 from nerfart_plugin.fields.occupancy import OccupancyGrid
+from nerfart_plugin.fields.sdf import SDFField
 from nerfart_plugin.fields.volsdf import VolSDFField
 
 __all__ = [

@@ -14,13 +14,13 @@ import torch.nn as nn
 import torch.nn.functional as F
 from torch import Tensor
 
+from nerfart_plugin.config import registry
 from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.registry import register
+from nerfart_plugin.config.sections import typed_section
 from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.data.setup import AUTO_CELL_PIXELS, AUTO_GRID_MIN
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.config import registry
-from nerfart_plugin.config.registry import register
-from nerfart_plugin.config.sections import typed_section
 
 __all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "build_encoding",
            "level_sides"]

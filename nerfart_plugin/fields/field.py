@@ -17,7 +17,6 @@ import torch.nn as nn
 from torch import Tensor
 
 
-
 class Field(nn.Module):
     """The field contract: everything the renderer, the occupancy grid, mesh export and the
     training stages ask of a backbone (``docs/architecture.md``). Nothing outside

@@ -11,7 +11,6 @@ import torch.nn as nn
 from torch import Tensor
 
 
-
 class _SharpSoftplusFn(torch.autograd.Function):
     """``softplus_beta(x) = (relu(beta x) + log(1 + exp(-|beta x|))) / beta``; gradient ``sigmoid(beta x)``.
 

@@ -8,10 +8,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from nerfart_plugin.config.types import Float, Limits, Setting
-from nerfart_plugin.fields.neural import NeuralField
-from nerfart_plugin.fields.mlp import make_mlp
 from nerfart_plugin.config.registry import register
+from nerfart_plugin.config.types import Float, Limits, Setting
+from nerfart_plugin.fields.mlp import make_mlp
+from nerfart_plugin.fields.neural import NeuralField
 
 __all__ = ["NeRFField", "trunc_exp"]
 

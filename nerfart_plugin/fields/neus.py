@@ -8,10 +8,10 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
-from nerfart_plugin.config.types import Float, Int, Limits, Setting
-from nerfart_plugin.fields.sdf import SDFField
 from nerfart_plugin.config.registry import register
+from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.fields.opacity import neus_alpha, neus_alpha_sections
+from nerfart_plugin.fields.sdf import SDFField
 
 __all__ = ["NeuSField"]
 

@@ -9,11 +9,11 @@ import torch
 import torch.nn as nn
 from torch import Tensor
 
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Limits, Setting
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.fields.sdf import SDFField
-from nerfart_plugin.config.registry import register
 from nerfart_plugin.fields.opacity import volsdf_density
+from nerfart_plugin.fields.sdf import SDFField
 
 __all__ = ["VolSDFField"]
 

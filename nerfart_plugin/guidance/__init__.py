@@ -27,18 +27,18 @@ from typing import Any
 from torch import nn
 
 from nerfart_plugin.config import registry
-from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", "toy")
 from nerfart_plugin.config.sections import typed_section
+from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", "toy")
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
 from nerfart_plugin.guidance.prompts import (
     NegativeSampler,
-    default_negative_threshold,
-    negatives_origin,
     augment_prompt,
+    default_negative_threshold,
     default_source_prompt,
     load_negatives,
+    negatives_origin,
     resolve_negatives,
     validate_prompt,
 )

@@ -35,16 +35,17 @@ from typing import Any, ClassVar, Literal, Optional
 import kornia
 import torch
 from torch import Tensor
+from torch.nn.attention import SDPBackend, sdpa_kernel
 
 from nerfart_plugin.config.auto import dtype_name
 from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip_weights import find_cached, is_torchscript_archive, missing_message
 from nerfart_plugin.guidance.precision import LowPrecisionWeights, Precision, check_precision, compute_dtype
-from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 
@@ -82,7 +83,6 @@ def attention_kernels(device: torch.device) -> contextlib.AbstractContextManager
     one at a time: ~6% of the tower in a scratch measurement); torch's choice elsewhere."""
     if device.type != "cpu":
         return contextlib.nullcontext()
-    from torch.nn.attention import SDPBackend, sdpa_kernel
 
     return sdpa_kernel(SDPBackend.MATH)
 

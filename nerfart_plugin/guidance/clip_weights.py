@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+import zipfile
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -80,7 +81,6 @@ def missing_message(model: str, tag: str, searched: list[str], cache_dir: str | 
 
 def is_torchscript_archive(path: str) -> bool:
     """A TorchScript zip (OpenAI's own ViT-B-32.pt): its weights need QuickGELU."""
-    import zipfile
 
     try:
         with zipfile.ZipFile(path) as zf:

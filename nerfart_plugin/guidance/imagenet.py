@@ -47,11 +47,11 @@ import torch
 from torch import Tensor, nn
 
 from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.prompts import content_words
-from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

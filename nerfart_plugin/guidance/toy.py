@@ -37,9 +37,9 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
-from nerfart_plugin.config.registry import register
 
 COLOURS: dict[str, tuple[float, float, float]] = {
     "red": (1.0, 0.0, 0.0),

@@ -29,14 +29,14 @@ import kornia
 import torch
 from torch import Tensor, nn
 
+from nerfart_plugin.config.auto import dtype_name
 from nerfart_plugin.config.components import ComponentConfig
+from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Int, Limits, Setting
-from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import weights as wts
-from nerfart_plugin.config.auto import dtype_name
+from nerfart_plugin.guidance.base import WeightsPolicy
 from nerfart_plugin.guidance.precision import Precision, check_precision, compute_dtype
-from nerfart_plugin.config.registry import register
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 
 from nerfart_plugin.errors import WeightsMissingError
-from nerfart_plugin.guidance.imagenet import imagenet_classes, lite_preprocess, load_efficientnet_lite, VARIANTS
+from nerfart_plugin.guidance.imagenet import VARIANTS, imagenet_classes, lite_preprocess, load_efficientnet_lite
 from nerfart_plugin.objectives.losses import psnr
 
 log = logging.getLogger(__name__)
@@ -167,7 +167,6 @@ class ImageNetJudge:
     """
 
     def __init__(self, model: str = "lite2", weights: Optional[str] = None) -> None:
-
         self.model = VARIANTS[model].timm_name
         self.size = VARIANTS[model].input_size
         self.net = load_efficientnet_lite(model, weights)

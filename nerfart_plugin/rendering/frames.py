@@ -22,6 +22,7 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from nerfart_plugin.data.rays import camera_batch
 from nerfart_plugin.errors import ConfigError
@@ -53,8 +54,6 @@ def render_cameras(renderer: Any, path: Any, *, ndc: bool, near: float, far: flo
     Returns:
         channel -> list of [H,W,3] uint8 frames (``side``: [H, 2W + gap, 3]).
     """
-    from tqdm.auto import tqdm
-
 
     unknown = [c for c in channels if c not in CHANNELS]
     if unknown:

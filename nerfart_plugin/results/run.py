@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence, Union
 
@@ -14,9 +14,9 @@ import torch
 import yaml
 
 from nerfart_plugin.cameras.capture import CaptureCameras, scale_intrinsics
-from nerfart_plugin.cameras.path import frame_size, RenderPath, resolve_path, scaled_K, write_camera_path
+from nerfart_plugin.cameras.path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
 from nerfart_plugin.config.migrate import to_current
-from nerfart_plugin.config.schema import parse_config, RunConfig
+from nerfart_plugin.config.schema import RunConfig, parse_config
 from nerfart_plugin.data.datamodule import datamodule_of
 from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import ConfigError, NerfArtError
@@ -25,9 +25,9 @@ from nerfart_plugin.export.video import write_video
 from nerfart_plugin.export.world_frame import mesh_in_frame
 from nerfart_plugin.rendering.frames import render_cameras
 from nerfart_plugin.results.blend import blend_tag, blended_renderer, check_strength, check_weights
-from nerfart_plugin.results.record import migrate, RunRecord
+from nerfart_plugin.results.record import RunRecord, migrate
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.checkpoints import load_checkpoint, META_KEY, prefixed_state
+from nerfart_plugin.systems.checkpoints import META_KEY, load_checkpoint, prefixed_state
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.images import save_image
 from nerfart_plugin.utils.io import hash_files, slug
@@ -215,8 +215,6 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
     """Stylizations of one source combined: ``θ_src + Σ w_i (θ_i − θ_src)`` (:mod:`nerfart_plugin.results.blend`;
     each weight in ``blend.WEIGHT_RANGE``). Returns a Run like the first one (its folder, settings and
     cameras) rendering the blend. Runs whose source checkpoints differ in content are refused."""
-    from dataclasses import replace
-
 
     weights = check_weights(weights, len(runs))
     for r in runs:
@@ -234,7 +232,6 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
 
 
 def _content(path: Path) -> str:
-
     return hash_files([Path(path)])
 
 

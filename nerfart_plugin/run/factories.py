@@ -20,17 +20,17 @@ from typing import Any, Optional, Sequence
 import torch
 
 from nerfart_plugin.cameras.capture import CaptureCameras
-from nerfart_plugin.config.schema import parse_config, RunConfig
+from nerfart_plugin.config.schema import RunConfig, parse_config
 from nerfart_plugin.data.datamodule import datamodule_of
 from nerfart_plugin.data.rays import views_at_resolution
 from nerfart_plugin.data.scene import Scene
-from nerfart_plugin.data.setup import decide_setup, SceneSetup
+from nerfart_plugin.data.setup import SceneSetup, decide_setup
 from nerfart_plugin.fields import occupancy_scores_opacity
 from nerfart_plugin.guidance import default_negative_threshold
-from nerfart_plugin.guidance.style import build_style, Style
+from nerfart_plugin.guidance.style import Style, build_style
 from nerfart_plugin.results.run import Run
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.checkpoints import check_fits, checkpoint_meta, load_checkpoint, META_KEY, prefixed_state
+from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, checkpoint_meta, load_checkpoint, prefixed_state
 from nerfart_plugin.systems.reconstruction import ReconstructionSystem
 from nerfart_plugin.systems.stylization import StylizationSystem
 from nerfart_plugin.utils.device import pick_device

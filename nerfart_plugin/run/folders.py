@@ -31,8 +31,8 @@ from typing import Any, Callable, Optional, Sequence, TypeVar
 from omegaconf import OmegaConf
 
 from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
-from nerfart_plugin.results.run import open_run, Run
-from nerfart_plugin.systems.checkpoints import check_fits, load_checkpoint, META_KEY
+from nerfart_plugin.results.run import Run, open_run
+from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, load_checkpoint
 from nerfart_plugin.utils.io import atomic_write_text, file_sha256
 from nerfart_plugin.utils.lock import run_lock
 

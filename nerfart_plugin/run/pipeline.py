@@ -27,17 +27,17 @@ import torch
 from omegaconf import DictConfig
 
 from nerfart_plugin.config.issues import show
-from nerfart_plugin.config.schema import parse_config, RunConfig
+from nerfart_plugin.config.schema import RunConfig, parse_config
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.guidance import validate_prompt
-from nerfart_plugin.guidance.style import build_style, check_style, Style
-from nerfart_plugin.run.factories import build_scene, SceneContext
+from nerfart_plugin.guidance.style import Style, build_style, check_style
+from nerfart_plugin.run.factories import SceneContext, build_scene
 from nerfart_plugin.run.stages.base import LiveViewerFactory
 from nerfart_plugin.run.stages.export import ExportStage
 from nerfart_plugin.run.stages.preview import PreviewStage
 from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 from nerfart_plugin.run.stages.render import RenderStage
-from nerfart_plugin.run.stages.stylize import stylization_source, StylizeStage
+from nerfart_plugin.run.stages.stylize import StylizeStage, stylization_source
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.io import atomic_write_json, check_writable_dir
 

@@ -8,12 +8,12 @@ from typing import Any, Optional
 import lightning as L
 import torch
 
+from nerfart_plugin.config.schema import parse_config
+from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.fields import OccupancyGrid, build_background, build_field
 from nerfart_plugin.rendering import VolumeRenderer
-from nerfart_plugin.utils.device import to_device
-from nerfart_plugin.config.schema import parse_config
 from nerfart_plugin.systems.checkpoints import META_KEY, checkpoint_meta
-from nerfart_plugin.data.setup import SceneSetup
+from nerfart_plugin.utils.device import to_device
 
 log = logging.getLogger(__name__)
 

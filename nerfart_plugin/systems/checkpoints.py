@@ -85,7 +85,6 @@ def load_checkpoint(path: str | Path, fix: str = "") -> dict[str, Any]:
 
 
 def _version() -> str:
-
     return __version__
 
 

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 from nerfart_plugin.errors import DataError
 from nerfart_plugin.utils.io import atomic_path
@@ -48,7 +49,6 @@ def pad_to_even(frame: np.ndarray) -> np.ndarray:
 
 def label_image(img: np.ndarray, text: str) -> np.ndarray:
     """Draw ``text`` in the top-left corner of an HxWx3 uint8 image (PIL default font)."""
-    from PIL import Image, ImageDraw, ImageFont
 
     im = Image.fromarray(img)
     draw = ImageDraw.Draw(im)
@@ -97,7 +97,6 @@ def image_grid(images: Sequence[np.ndarray], ncols: int | None = None, gap: int 
 
 def save_image(image: np.ndarray, path: str | os.PathLike) -> Path:
     """Save one image (PNG/JPEG by suffix) atomically."""
-    from PIL import Image
 
     path = Path(path)
     fmt = {".png": "PNG", ".jpg": "JPEG", ".jpeg": "JPEG"}.get(path.suffix.lower())

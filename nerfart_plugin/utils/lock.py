@@ -21,6 +21,8 @@ import time
 from pathlib import Path
 from typing import Iterator, Optional
 
+from filelock import FileLock, Timeout
+
 from nerfart_plugin.errors import RunLockedError
 
 log = logging.getLogger(__name__)
@@ -65,7 +67,6 @@ def run_lock(run_dir: Path, timeout: Optional[float]) -> Iterator[None]:
     Raises:
         RunLockedError: still held after ``timeout`` seconds (names the holder and what to do).
     """
-    from filelock import FileLock, Timeout
 
     if process_rank() != 0:  # DDP: rank 0 holds the lock for the run; its worker ranks must not wait for it
         yield

@@ -18,7 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Union
 
-from nerfart_plugin.api import open_run, Run
+from nerfart_plugin.api import Run, open_run
 from nerfart_plugin.viewer import panels
 from nerfart_plugin.viewer.path_editor import PathEditor
 from nerfart_plugin.viewer.server import Viewer

@@ -10,12 +10,16 @@ cannot download its own here), with software WebGL so that it draws without a GP
 from __future__ import annotations
 
 import argparse
+import io
 import os
 import shutil
 import sys
 import time
 from pathlib import Path
 from typing import Any, Optional, Sequence
+
+import numpy as np
+from PIL import Image
 
 from nerfart_plugin.errors import NerfArtError
 
@@ -116,10 +120,6 @@ class BrowserPage:
 
     def screenshot(self, path: Optional[Path] = None) -> Any:
         """The page as an [H,W,3] uint8 array (and a PNG at ``path``)."""
-        import io
-
-        import numpy as np
-        from PIL import Image
 
         png = self.page.screenshot(path=str(path) if path else None)
         return np.asarray(Image.open(io.BytesIO(png)).convert("RGB"))

@@ -15,8 +15,8 @@ from typing import Any, Callable, Optional
 import numpy as np
 
 from nerfart_plugin.viewer.cameras import ViewCamera
-from nerfart_plugin.viewer.sources import ViewSettings
 from nerfart_plugin.viewer.schedule import FrameSchedule, wait_for_share
+from nerfart_plugin.viewer.sources import ViewSettings
 
 log = logging.getLogger(__name__)
 

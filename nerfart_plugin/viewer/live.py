@@ -91,7 +91,6 @@ class LiveJudge:
     EVERY_S = 5.0
 
     def __init__(self, prompt: str, render_share: float = 0.1) -> None:
-
         self.judge, self.target, self.skipped = judge_for(prompt)
         self.render_share = render_share
         self.text = f"judge: not run ({self.skipped})" if self.judge is None else "judge: waiting for a still view"
@@ -189,7 +188,6 @@ class LiveViewer(L.Callback):
 
     # ---- parts
     def start(self, system: Any) -> Any:
-
         field = LiveField(system, self.cameras, self.render_share, self.chunk)
         viewer = Viewer(field, host=self.host, port=self.port,
                         writable=None if self.folder is None else Path(self.folder) / "render",
@@ -203,7 +201,6 @@ class LiveViewer(L.Callback):
         return viewer
 
     def _request_stop(self, trainer: L.Trainer) -> None:
-
         stops = [cb for cb in trainer.callbacks if isinstance(cb, GracefulInterrupt)]
         if stops:  # the run's Ctrl-C path: checkpoint, then RunInterrupted naming how to resume
             stops[0].requested = True

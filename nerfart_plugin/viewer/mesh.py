@@ -22,6 +22,7 @@ warn about, an X server. No Xvfb is needed.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import sys
@@ -215,7 +216,6 @@ def capture_view(cameras: str | os.PathLike | dict | None,
                  meshes: Sequence[str | os.PathLike | trimesh.Trimesh] = ()) -> list | None:
     """PyVista ``camera_position`` ``[eye, focal point, view up]`` at the capture's front camera, looking at
     the cameras' look-at centre with the capture's up vector; None without cameras (isometric view)."""
-    import json
 
     if cameras == "auto":
         cameras = find_cameras(meshes)

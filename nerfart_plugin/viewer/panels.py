@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
+from PIL import Image
 
 from nerfart_plugin.results.blend import STRENGTH_RANGE, WEIGHT_RANGE
 from nerfart_plugin.viewer.cameras import capture_camera, to_viser
@@ -146,7 +147,6 @@ def load_photos_later(run: Any, layer: CaptureFrustums) -> threading.Thread:
 
 def thumbnails(images: np.ndarray, side: int = THUMBNAIL_SIDE) -> list[np.ndarray]:
     """[N,H,W,3] float images in [0,1] -> uint8 thumbnails with the long side at ``side`` pixels."""
-    from PIL import Image
 
     out = []
     for img in images:

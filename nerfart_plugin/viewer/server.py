@@ -18,7 +18,7 @@ import numpy as np
 
 from nerfart_plugin.cameras.capture import front_camera
 from nerfart_plugin.data.normalize import look_at_centre
-from nerfart_plugin.viewer.cameras import capture_camera, from_viser, scene_scale, to_viser, ViewCamera
+from nerfart_plugin.viewer.cameras import ViewCamera, capture_camera, from_viser, scene_scale, to_viser
 from nerfart_plugin.viewer.jobs import TabRenderer
 from nerfart_plugin.viewer.schedule import FrameSchedule
 from nerfart_plugin.viewer.sources import ViewSettings
@@ -80,7 +80,6 @@ class Viewer:
         return f"http://{'127.0.0.1' if host in ('0.0.0.0', '') else host}:{self.port}"
 
     def _front_index(self) -> int:
-
         return front_camera(self.cams.to_world(self.cams.c2w[:, :3, :4]))
 
     def _place_scene(self) -> None:

@@ -10,6 +10,7 @@ threads, and two pools on the same cores spin against each other; one thread kee
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import threading
@@ -26,7 +27,7 @@ from nerfart_plugin.api import mix, open_run
 from nerfart_plugin.cameras.capture import CaptureCameras
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.rendering.frames import render_cameras
-from nerfart_plugin.viewer.cameras import render_path, ViewCamera
+from nerfart_plugin.viewer.cameras import ViewCamera, render_path
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +130,6 @@ class RunField:
         return self._source
 
     def _blended(self, weights: tuple[float, ...]) -> Any:
-
         runs, ws = [self.run], [weights[0]]
         for folder, w in zip(self.siblings, weights[1:]):
             if w != 0.0:
@@ -138,7 +138,6 @@ class RunField:
         return mix(runs, ws).renderer
 
     def _sibling(self, folder: Path) -> Any:
-
         if folder not in self._opened:
             log.info("opening %s to mix it", folder)
             self._opened[folder] = open_run(folder, device=str(self.run.device))
@@ -165,7 +164,6 @@ def timed(fn: Callable[..., np.ndarray], *args: Any) -> tuple[np.ndarray, float]
 def sibling_runs(run: Any) -> list[Path]:
     """The other finished stylizations beside ``run`` (its parent folder) that name the same source
     checkpoint: the runs the viewer offers to mix with it (:func:`nerfart_plugin.api.mix` checks content)."""
-    import json
 
     if run.kind != "stylization":
         return []

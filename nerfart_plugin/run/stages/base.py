@@ -13,13 +13,12 @@ from typing import Any, Callable, Iterator, Optional
 
 import numpy as np
 
-
 from nerfart_plugin.cameras.capture import CaptureCameras, viewer_cameras
 from nerfart_plugin.config.auto import component_choices, recorded
 from nerfart_plugin.config.schema import ViewerConfig
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.results.record import key_in_name, RunRecord
-from nerfart_plugin.results.run import mix, open_run, Run
+from nerfart_plugin.results.record import RunRecord, key_in_name
+from nerfart_plugin.results.run import Run, mix, open_run
 from nerfart_plugin.run.factories import SceneContext
 from nerfart_plugin.run.fit import FitResult, publish_final, stage_final
 from nerfart_plugin.run.folders import RunFolder

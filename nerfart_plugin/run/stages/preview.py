@@ -7,6 +7,7 @@ directional similarity (any prompt) and the judge's verdict (prompts naming an I
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 from pathlib import Path
@@ -38,7 +39,6 @@ class PreviewStage(StylizeStage):
         self.folder = RunFolder.find(scene.root / "previews", self.names, "preview")
 
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
-
         with self.clock.part("evaluation"):
             metrics = self.heldout_metrics(system)
         _, src, sty = self.heldout_views
@@ -66,7 +66,6 @@ class PreviewStage(StylizeStage):
 def preview_scene(scene: SceneContext) -> SceneContext:
     """``scene`` under the preview's settings: ``preview.steps`` / ``preview.resolution`` in place of the
     stylization's, no video, no saved renders, no meshes."""
-    import copy
 
     plain = copy.deepcopy(scene.plain)
     pc = scene.cfg.preview

@@ -7,16 +7,14 @@ from __future__ import annotations
 import logging
 from typing import Any, Optional
 
-
 from nerfart_plugin.export.run_meshes import export_source_mesh
 from nerfart_plugin.objectives.evaluation import evaluate_views, evaluation_views
-from nerfart_plugin.run.factories import build_reconstruction_system, SceneContext
-from nerfart_plugin.run.fit import fit_stage, FitResult
+from nerfart_plugin.run.factories import SceneContext, build_reconstruction_system
+from nerfart_plugin.run.fit import FitResult, fit_stage
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.run.keys import reconstruction_keys
 from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
 from nerfart_plugin.systems.callbacks import FiniteGradientGuard
-
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -37,7 +35,6 @@ class ReconstructStage(TrainingStage):
         return build_reconstruction_system(self.scene, out_dir=self.folder.path)
 
     def fit(self, system: Any) -> FitResult:
-
         rc = self.scene.cfg.reconstruct
         val_kw: dict[str, Any] = (dict(val_check_interval=rc.val_every, check_val_every_n_epoch=None,
                                        limit_val_batches=rc.val_views or 1.0)

@@ -9,16 +9,28 @@ from typing import Any, Optional
 
 import numpy as np
 import torch
+from PIL import Image
 
+from nerfart_plugin.cameras.capture import scale_intrinsics
 from nerfart_plugin.cameras.orbits import orbit_path
+from nerfart_plugin.cameras.path import RenderPath
 from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, vertex_distances
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.guidance.style import Style, style_choices
-from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
-    lost_subject, off_surface_share, silhouette_iou, view_consistency)
-from nerfart_plugin.run.factories import build_stylization_system, load_renderer_state, SceneContext, stylize_settings
-from nerfart_plugin.run.fit import fit_stage, FitResult
+from nerfart_plugin.objectives.evaluation import (
+    clip_scores,
+    edge_similarity,
+    evaluation_views,
+    judge_prompt,
+    lost_subject,
+    off_surface_share,
+    silhouette_iou,
+    view_consistency,
+)
+from nerfart_plugin.rendering.frames import render_cameras
+from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
+from nerfart_plugin.run.fit import FitResult, fit_stage
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.run.keys import checkpoint_keys, stylization_keys
 from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
@@ -26,11 +38,6 @@ from nerfart_plugin.run.stages.reconstruct import ReconstructStage
 from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.utils.images import to_uint8
 from nerfart_plugin.utils.io import atomic_path, slug
-
-
-from nerfart_plugin.cameras.capture import scale_intrinsics
-from nerfart_plugin.cameras.path import RenderPath
-from nerfart_plugin.rendering.frames import render_cameras
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -137,8 +144,6 @@ class StylizeStage(TrainingStage):
 
     def save_heldout(self, ids: list[int], src: torch.Tensor, sty: torch.Tensor) -> None:
         """``heldout/source_<view>.png`` and ``heldout/stylized_<view>.png`` at the stylization resolution."""
-        from PIL import Image
-
 
         for i, a, b in zip(ids, src, sty):
             for name, img in (("source", a), ("stylized", b)):
