@@ -113,12 +113,8 @@ def retained_graph_cost(ctx: Any, view: dict[str, Any], samples: int, chunk: int
     random image gradient, same samples (the ray terms aside)."""
     import torch
 
-    from nerfart_plugin.rendering.two_pass import (
-        backprop_patches,
-        backprop_retained,
-        render_fixed_samples,
-        render_with_graph,
-    )
+    from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
+        render_with_graph)
 
     r, img_grad = source_field_and_image_gradient(ctx, view, samples)
 

@@ -111,7 +111,7 @@ def measure(payload: dict[str, Any]) -> dict[str, Any]:
     """Child: build the field, warm up, then time one ``mode`` step at ``size`` and report peak memory."""
     import torch
 
-    from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.config.validate import parse_config
     from nerfart_plugin.data.setup import SceneSetup
     from nerfart_plugin.systems.base import build_renderer
     from nerfart_plugin.utils.device import pick_device, to_device

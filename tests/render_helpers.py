@@ -71,12 +71,8 @@ def check_retained_graph_matches_the_patches(backbone: str, occupancy: int, devi
     parameter gradient (1e-4 relative), on an opaque field whose rays stop early."""
     import pytest
 
-    from nerfart_plugin.rendering.two_pass import (
-        backprop_patches,
-        backprop_retained,
-        render_fixed_samples,
-        render_with_graph,
-    )
+    from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
+        render_with_graph)
     from nerfart_plugin.utils.device import to_device
 
     torch.manual_seed(0)

@@ -153,7 +153,7 @@ def test_render_and_export_stages_mix_runs_into_the_first_runs_folder(styles, tm
 
 def test_mix_settings_are_checked_before_any_work():
     from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.config.validate import parse_config
 
     def issues(*overrides: str) -> str:
         with pytest.raises(ConfigError) as exc:

@@ -86,7 +86,7 @@ def test_plus_data_at_package_composes_a_second_data_config():
     """``+data@foo=h3ds`` is Hydra's own: the composed config gains a second data package ``foo`` (the
     first ``data`` untouched), which the schema then names as an unknown top-level key."""
     from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.config.validate import parse_config
     from nerfart_plugin.errors import ConfigError
 
     cfg = load_config(normalize_overrides(["data=llff", "data.path=x", "+data@foo=h3ds"]))

@@ -17,7 +17,7 @@ from pydantic import BaseModel
 
 from nerfart_plugin.config import compose as config_help
 from nerfart_plugin.config import issues as config_issues
-from nerfart_plugin.config import schema
+from nerfart_plugin.config import schema, validate
 from nerfart_plugin.config import sections as config_components
 from nerfart_plugin.config.compose import config_dir, group_options
 from nerfart_plugin.config.migrate import CONFIG_FORMAT, to_format_1
@@ -26,13 +26,13 @@ from nerfart_plugin.run.pipeline import Pipeline, check_stage
 
 
 def _plain_of(c):
-    """The plain validated settings of ``c`` (the one validation, :func:`schema.parse_config`)."""
-    return schema.parse_config(c)[1]
+    """The plain validated settings of ``c`` (the one validation, :func:`validate.parse_config`)."""
+    return validate.parse_config(c)[1]
 
 
 def _validated(c):
     """``c`` validated as the pipeline does: the config's own checks, then the stage's."""
-    run, plain = schema.parse_config(c)
+    run, plain = validate.parse_config(c)
     check_stage(run)
     return plain
 
@@ -97,14 +97,14 @@ def test_help_lists_every_setting_with_its_description():
 
 def test_cache_keys_leave_out_only_what_does_not_change_results():
     c = schema.RunConfig.model_validate(cfg())
-    assert "chunk" not in schema.result_settings(c.render) and "num_samples" in schema.result_settings(c.render)
-    assert {"precision", "devices", "num_nodes", "strategy"} <= set(schema.result_settings(c.trainer))
-    assert "log_every_n_steps" not in schema.result_settings(c.trainer)
-    rc = schema.result_settings(c.reconstruct)
+    assert "chunk" not in validate.result_settings(c.render) and "num_samples" in validate.result_settings(c.render)
+    assert {"precision", "devices", "num_nodes", "strategy"} <= set(validate.result_settings(c.trainer))
+    assert "log_every_n_steps" not in validate.result_settings(c.trainer)
+    rc = validate.result_settings(c.reconstruct)
     assert not {"val_every", "val_views", "checkpoint_every"} & set(rc) and "steps" in rc
-    sc = schema.result_settings(c.stylize)
+    sc = validate.result_settings(c.stylize)
     assert not {"render_every", "checkpoint_every", "video_frames", "video_fps"} & set(sc) and "tau" in sc
-    assert "subject" not in schema.component_result_settings("data", cfg()["data"])
+    assert "subject" not in validate.component_result_settings("data", cfg()["data"])
 
 
 GROUP_VARIANTS = [(), ("data=llff", "data.path=x"), ("data=selfie", "data.path=x")] + [
@@ -221,9 +221,9 @@ GUIDANCE_KEYS = {(): "f3b25190bc95", ("guidance=toy",): "03c3829bbda7", ("guidan
 def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
     from nerfart_plugin.utils.io import config_hash
 
-    old = to_format_1(schema.parse_config(cfg(*overrides))[1])
+    old = to_format_1(validate.parse_config(cfg(*overrides))[1])
     sections = {"backbone": old["backbone"], "encoding": old["encoding"],
-                "data": schema.component_result_settings("data", old["data"])}
+                "data": validate.component_result_settings("data", old["data"])}
     assert config_hash(sections) == COMPONENT_KEYS[overrides]
 
 
@@ -231,7 +231,7 @@ def test_component_sections_keep_the_cache_keys_of_existing_runs(overrides: tupl
 def test_the_guidance_section_keeps_the_cache_keys_of_existing_runs(overrides: tuple[str, ...]) -> None:
     from nerfart_plugin.utils.io import config_hash
 
-    assert config_hash({"guidance": to_format_1(schema.parse_config(cfg(*overrides))[1])["guidance"]}) \
+    assert config_hash({"guidance": to_format_1(validate.parse_config(cfg(*overrides))[1])["guidance"]}) \
         == GUIDANCE_KEYS[overrides]
 
 
@@ -493,7 +493,7 @@ def test_explicit_source_checkpoint_key_covers_its_content_and_the_render_settin
     ckpt.write_bytes(b"one")
 
     def key(*overrides: str, content: str = "scene-a") -> str:
-        c, plain = schema.parse_config(cfg(f"source_checkpoint={ckpt}", *overrides))
+        c, plain = validate.parse_config(cfg(f"source_checkpoint={ckpt}", *overrides))
         scene = SimpleNamespace(cfg=c, plain=plain, scene=SimpleNamespace(content_hash=content))
         return stylization_source(scene, None)[1][CONFIG_FORMAT]
 

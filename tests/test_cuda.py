@@ -9,12 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 from pipeline_helpers import tiny_cfg
-from render_helpers import (
-    check_retained_graph_matches_the_patches,
-    check_sharp_surface_under_autocast,
-    front_view,
-    tiny_renderer,
-)
+from render_helpers import (check_retained_graph_matches_the_patches, check_sharp_surface_under_autocast, front_view,
+    tiny_renderer)
 
 from nerfart_plugin.rendering.two_pass import backprop_patches, render_fixed_samples
 from nerfart_plugin.utils.device import to_device

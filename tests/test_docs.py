@@ -60,7 +60,7 @@ def test_the_docs_document_commands():
 @pytest.mark.parametrize("page,command", documented_commands(), ids=lambda v: v if len(v) < 60 else v[:60])
 def test_every_documented_command_composes_and_validates(page, command):
     from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.config.validate import parse_config
 
     if "--help" in command:
         return

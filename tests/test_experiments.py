@@ -32,7 +32,7 @@ def test_command_line_beats_preset() -> None:
 
 
 def test_ddp_settings_reach_the_trainer_and_stylize_refuses_them() -> None:
-    from nerfart_plugin.config.schema import parse_config
+    from nerfart_plugin.config.validate import parse_config
     from nerfart_plugin.errors import ConfigError
     from nerfart_plugin.run.pipeline import check_stage
 

@@ -11,12 +11,8 @@ from nerfart_plugin.errors import ConfigError, WeightsMissingError
 from nerfart_plugin.guidance import CLIPGuidance, build_guidance
 from nerfart_plugin.guidance import weights as wts
 from nerfart_plugin.guidance.base import WeightsPolicy
-from nerfart_plugin.guidance.clip import (
-    TINY_TEST_OVERRIDES,
-    PatchEmbedding,
-    attention_kernels,
-    use_matmul_patch_embedding,
-)
+from nerfart_plugin.guidance.clip import (TINY_TEST_OVERRIDES, PatchEmbedding, attention_kernels,
+    use_matmul_patch_embedding)
 from nerfart_plugin.guidance.precision import LowPrecisionWeights, cpu_has_bf16
 
 TINY_CFG = {

@@ -8,14 +8,8 @@ import pytest
 import torch
 
 from nerfart_plugin.errors import ConfigError, DataError
-from nerfart_plugin.guidance import (
-    NegativeSampler,
-    ToyGuidance,
-    augment_prompt,
-    default_source_prompt,
-    load_negatives,
-    validate_prompt,
-)
+from nerfart_plugin.guidance import (NegativeSampler, ToyGuidance, augment_prompt, default_source_prompt,
+    load_negatives, validate_prompt)
 from nerfart_plugin.guidance.prompts import package_negatives_path, parse_negative_prompts
 
 OFFICIAL = "negative_prompts_official.txt"

@@ -4,20 +4,12 @@ from __future__ import annotations
 
 import pytest
 import torch
-from render_helpers import (
-    check_retained_graph_matches_the_patches,
-    front_view,
-    retained_graph_ray_losses,
-    tiny_renderer,
-)
+from render_helpers import (check_retained_graph_matches_the_patches, front_view, retained_graph_ray_losses,
+    tiny_renderer)
 
 from nerfart_plugin.objectives.losses import weight_regularization
-from nerfart_plugin.rendering.two_pass import (
-    backprop_patches,
-    backprop_retained,
-    render_fixed_samples,
-    render_with_graph,
-)
+from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
+    render_with_graph)
 
 
 def _renderer(backbone: str, occupancy: int) -> torch.nn.Module:

@@ -15,15 +15,8 @@ import torch
 from nerfart_plugin.cameras.capture import CaptureCameras
 from nerfart_plugin.cameras.path import read_camera_path
 from nerfart_plugin.errors import ConfigError
-from nerfart_plugin.viewer.cameras import (
-    ViewCamera,
-    capture_camera,
-    from_viser,
-    matrix_to_wxyz,
-    render_path,
-    to_viser,
-    wxyz_to_matrix,
-)
+from nerfart_plugin.viewer.cameras import (ViewCamera, capture_camera, from_viser, matrix_to_wxyz, render_path,
+    to_viser, wxyz_to_matrix)
 from nerfart_plugin.viewer.jobs import TabRenderer
 from nerfart_plugin.viewer.keyframes import catmull_rom, interpolate, save_path
 from nerfart_plugin.viewer.live import LiveViewer, TrainingControl, readouts

@@ -18,7 +18,7 @@ from typing import Any, Optional
 
 from torch.utils.data import DataLoader, Dataset
 
-from nerfart_plugin.config.schema import to_plain
+from nerfart_plugin.config.validate import to_plain
 from nerfart_plugin.data import load_scene
 from nerfart_plugin.data.loader import LoaderContext
 from nerfart_plugin.data.rays import rays_for_views

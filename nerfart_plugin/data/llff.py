@@ -31,14 +31,8 @@ from nerfart_plugin.config.components import configured
 from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.images import (
-    choose_resolution,
-    find_mask_folder,
-    image_size,
-    list_images,
-    match_masks,
-    read_image_set,
-)
+from nerfart_plugin.data.images import (choose_resolution, find_mask_folder, image_size, list_images, match_masks,
+    read_image_set)
 from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_cameras
 from nerfart_plugin.data.scene import CaptureType, Scene

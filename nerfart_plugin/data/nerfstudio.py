@@ -71,16 +71,8 @@ from nerfart_plugin.config.components import configured
 from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import HoldoutEvery, Setting
 from nerfart_plugin.data.common import make_scene, require_dir
-from nerfart_plugin.data.images import (
-    IMAGE_EXTS,
-    choose_resolution,
-    image_size,
-    read_image,
-    read_rgba,
-    resize_float,
-    resize_premultiplied,
-    target_size,
-)
+from nerfart_plugin.data.images import (IMAGE_EXTS, choose_resolution, image_size, read_image, read_rgba, resize_float,
+    resize_premultiplied, target_size)
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, similarity, unit_sphere_from_cameras

@@ -39,14 +39,8 @@ from nerfart_plugin.config.registry import register
 from nerfart_plugin.config.types import Float, Fraction, Int, Limits, Resolution, Setting
 from nerfart_plugin.data.colmap import ColmapModel, read_colmap_model
 from nerfart_plugin.data.common import make_scene, options_key, require_dir
-from nerfart_plugin.data.images import (
-    choose_resolution,
-    find_mask_folder,
-    list_images,
-    match_masks,
-    read_image,
-    target_size,
-)
+from nerfart_plugin.data.images import (choose_resolution, find_mask_folder, list_images, match_masks, read_image,
+    target_size)
 from nerfart_plugin.data.llff import forward_facing_normalization
 from nerfart_plugin.data.loader import LoaderConfig, LoaderContext
 from nerfart_plugin.data.normalize import apply_similarity, detect_capture, unit_sphere_from_points

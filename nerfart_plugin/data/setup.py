@@ -12,7 +12,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from typing import Any, Optional
 
-from nerfart_plugin.config.schema import ReconstructConfig, RenderConfig, section
+from nerfart_plugin.config.schema import ReconstructConfig, RenderConfig
+from nerfart_plugin.config.validate import section
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.errors import ConfigError
 

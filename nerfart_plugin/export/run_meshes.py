@@ -20,7 +20,7 @@ import numpy as np
 import torch
 import trimesh
 
-from nerfart_plugin.config.schema import result_settings
+from nerfart_plugin.config.validate import result_settings
 from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export import MeshExtractor
 from nerfart_plugin.export.texture import bake_texture, export_textured

@@ -32,16 +32,8 @@ from nerfart_plugin.guidance import clip, toy  # noqa: F401  (registers "clip", 
 from nerfart_plugin.guidance.base import Guidance, WeightsPolicy
 from nerfart_plugin.guidance.clip import CLIPGuidance
 from nerfart_plugin.guidance.patches import random_patches
-from nerfart_plugin.guidance.prompts import (
-    NegativeSampler,
-    augment_prompt,
-    default_negative_threshold,
-    default_source_prompt,
-    load_negatives,
-    negatives_origin,
-    resolve_negatives,
-    validate_prompt,
-)
+from nerfart_plugin.guidance.prompts import (NegativeSampler, augment_prompt, default_negative_threshold,
+    default_source_prompt, load_negatives, negatives_origin, resolve_negatives, validate_prompt)
 from nerfart_plugin.guidance.toy import ToyGuidance
 from nerfart_plugin.guidance.vgg import EdgePerceptual, Perceptual
 

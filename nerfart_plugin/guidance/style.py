@@ -13,16 +13,9 @@ from typing import Any, Optional
 
 import torch
 
-from nerfart_plugin.config.schema import parse_config
-from nerfart_plugin.guidance import (
-    augment_prompt,
-    build_guidance,
-    build_perceptual,
-    default_source_prompt,
-    negatives_origin,
-    resolve_negatives,
-    validate_prompt,
-)
+from nerfart_plugin.config.validate import parse_config
+from nerfart_plugin.guidance import (augment_prompt, build_guidance, build_perceptual, default_source_prompt,
+    negatives_origin, resolve_negatives, validate_prompt)
 
 log = logging.getLogger("nerfart_plugin")
 

@@ -16,7 +16,8 @@ import yaml
 from nerfart_plugin.cameras.capture import CaptureCameras, scale_intrinsics
 from nerfart_plugin.cameras.path import RenderPath, frame_size, resolve_path, scaled_K, write_camera_path
 from nerfart_plugin.config.migrate import to_current
-from nerfart_plugin.config.schema import RunConfig, parse_config
+from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.config.validate import parse_config
 from nerfart_plugin.data.datamodule import datamodule_of
 from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import ConfigError, NerfArtError

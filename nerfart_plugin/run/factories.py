@@ -20,7 +20,8 @@ from typing import Any, Optional, Sequence
 import torch
 
 from nerfart_plugin.cameras.capture import CaptureCameras
-from nerfart_plugin.config.schema import RunConfig, parse_config
+from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.config.validate import parse_config
 from nerfart_plugin.data.datamodule import datamodule_of
 from nerfart_plugin.data.rays import views_at_resolution
 from nerfart_plugin.data.scene import Scene

@@ -23,7 +23,8 @@ from typing import Any, Optional, Sequence
 import lightning as L
 import torch
 
-from nerfart_plugin.config.schema import TrainerConfig, section
+from nerfart_plugin.config.schema import TrainerConfig
+from nerfart_plugin.config.validate import section
 from nerfart_plugin.errors import NerfArtError, RunInterrupted
 from nerfart_plugin.run.folders import RunFolder, write_checkpoint_hash
 from nerfart_plugin.systems.base import steps_loader

@@ -4,7 +4,7 @@ Folders (under ``output_root``, default ``outputs/``):
 
 * ``reconstructions/<data>-<backbone>-<encoding>-<key>/`` and
   ``stylizations/<prompt>-<backbone>-<key><stamp>/``: ``<key>`` hashes every setting
-  that changes the stage's result (:func:`nerfart_plugin.config.schema.result_settings`), so
+  that changes the stage's result (:func:`nerfart_plugin.config.validate.result_settings`), so
   the same settings find the same folder and any change another.
 * ``final.ckpt`` marks a finished run: it is reused, never recomputed or overwritten. Its SHA-256 is kept
   beside it (``final.ckpt.sha256``); before a finished run is reused it is verified (the hash, or for a

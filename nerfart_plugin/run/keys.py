@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from nerfart_plugin.config.migrate import CONFIG_FORMAT, to_format_1
-from nerfart_plugin.config.schema import component_result_settings, result_settings
+from nerfart_plugin.config.validate import component_result_settings, result_settings
 from nerfart_plugin.utils.io import config_hash, hash_files
 
 #: the settings layouts a key is computed for, newest first

@@ -27,7 +27,8 @@ import torch
 from omegaconf import DictConfig
 
 from nerfart_plugin.config.issues import show
-from nerfart_plugin.config.schema import RunConfig, parse_config
+from nerfart_plugin.config.schema import RunConfig
+from nerfart_plugin.config.validate import parse_config
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.guidance import validate_prompt
 from nerfart_plugin.guidance.style import Style, build_style, check_style
@@ -45,7 +46,7 @@ log = logging.getLogger("nerfart_plugin")
 
 
 def check_stage(c: RunConfig) -> None:
-    """The checks that depend on the stage, after the config's own (:func:`~nerfart_plugin.config.schema.parse_config`):
+    """The checks that depend on the stage, after the config's own (:func:`~nerfart_plugin.config.validate.parse_config`):
     multi-device only for the reconstruction, a prompt for stylization, an existing ``source_checkpoint``, an
     available ``device``."""
     tc = c.trainer

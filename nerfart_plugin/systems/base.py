@@ -8,7 +8,7 @@ from typing import Any, Optional
 import lightning as L
 import torch
 
-from nerfart_plugin.config.schema import parse_config
+from nerfart_plugin.config.validate import parse_config
 from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.fields import OccupancyGrid, build_background, build_field
 from nerfart_plugin.rendering import VolumeRenderer

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from nerfart_plugin.config.schema import LoggerConfig, section
+from nerfart_plugin.config.schema import LoggerConfig
+from nerfart_plugin.config.validate import section
 from nerfart_plugin.errors import ConfigError
 
 if TYPE_CHECKING:  # pragma: no cover

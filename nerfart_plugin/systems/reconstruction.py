@@ -15,14 +15,8 @@ from nerfart_plugin.objectives.evaluation import view_metrics
 from nerfart_plugin.objectives.losses import psnr, reconstruction_loss, silhouette_loss
 from nerfart_plugin.systems.base import RenderSystem, adam, param_groups, step_seed
 from nerfart_plugin.systems.loggers import log_images
-from nerfart_plugin.systems.loss_terms import (
-    LossTerm,
-    compute,
-    regularizer_terms,
-    regularizer_weights,
-    weighted_sum,
-    weights_of,
-)
+from nerfart_plugin.systems.loss_terms import (LossTerm, compute, regularizer_terms, regularizer_weights, weighted_sum,
+    weights_of)
 from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.utils.images import image_grid, save_image, to_uint8
 

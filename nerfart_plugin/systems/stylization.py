@@ -40,28 +40,21 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from nerfart_plugin.config.schema import MAX_GRAD_SAMPLES, StylizeConfig, section
+from nerfart_plugin.config.schema import MAX_GRAD_SAMPLES, StylizeConfig
+from nerfart_plugin.config.validate import section
 from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.guidance import NegativeSampler, random_patches
 from nerfart_plugin.guidance.patches import subject_box
 from nerfart_plugin.guidance.style import Style, negatives_of
-from nerfart_plugin.rendering.two_pass import (
-    backprop_patches,
-    backprop_retained,
-    render_fixed_samples,
-    render_with_graph,
-)
+from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
+    render_with_graph)
 from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed
 from nerfart_plugin.systems.callbacks import check_finite_grads
 from nerfart_plugin.systems.loggers import log_images
 from nerfart_plugin.systems.loss_terms import compute, regularizer_weights, weighted_sum, weights_of
-from nerfart_plugin.systems.stylization_losses import (
-    STYLIZATION_IMAGE_LOSSES,
-    STYLIZATION_RAY_LOSSES,
-    ImageInputs,
-    regularizer_term,
-)
+from nerfart_plugin.systems.stylization_losses import (STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, ImageInputs,
+    regularizer_term)
 from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.utils.images import image_grid, save_image, to_uint8
 

@@ -12,14 +12,8 @@ from typing import Any, Optional
 
 from torch import Tensor
 
-from nerfart_plugin.objectives.losses import (
-    absolute_clip_loss,
-    contrastive_loss,
-    directional_clip_loss,
-    perceptual_loss,
-    silhouette_loss,
-    weight_regularization,
-)
+from nerfart_plugin.objectives.losses import (absolute_clip_loss, contrastive_loss, directional_clip_loss,
+    perceptual_loss, silhouette_loss, weight_regularization)
 from nerfart_plugin.systems.loss_terms import LossTerm
 
 

@@ -18,16 +18,8 @@ from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, ver
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.guidance.style import Style, style_choices
-from nerfart_plugin.objectives.evaluation import (
-    clip_scores,
-    edge_similarity,
-    evaluation_views,
-    judge_prompt,
-    lost_subject,
-    off_surface_share,
-    silhouette_iou,
-    view_consistency,
-)
+from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
+    lost_subject, off_surface_share, silhouette_iou, view_consistency)
 from nerfart_plugin.rendering.frames import render_cameras
 from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
 from nerfart_plugin.run.fit import FitResult, fit_stage
