@@ -18,7 +18,7 @@ def settings_page() -> str:
 
     lines = ["# Settings reference", "",
              "Every setting of the sections with fixed keys, generated from the typed config "
-             "(`nerfart_plugin/schema.py`; `python docs/make_reference.py` rewrites this page). Set any of them on "
+             "(`nerfart_plugin/config/schema.py`; `python docs/make_reference.py` rewrites this page). Set any of them on "
              "the command line (`render.num_samples=64`) or in a config group. The settings of each data loader, "
              "backbone, encoding, guide and perceptual network are listed at the end of this page; "
              "`python -m nerfart_plugin backbone=neus --cfg job` prints a composed config with its defaults.", "",

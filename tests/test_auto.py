@@ -53,3 +53,23 @@ def test_components_report_what_their_auto_became():
     assert component_choices(cpu, [grid, None]) == {"backbone.grad_type": "finite_difference"}
     assert component_choices(cpu, [freq])["backbone.grad_type"] == "analytic"
     assert component_choices(cpu, [ToyGuidance()]) == {}  # a component without auto settings reports nothing
+
+
+def test_every_deciding_function_named_in_the_table_exists():
+    """AUTO_SETTINGS names a module and a function (or class attribute) of the package for each setting; a move
+    that forgets the table fails here."""
+    import importlib
+
+    for setting, where in AUTO_SETTINGS.items():
+        dotted = where.split(" ")[0] if not where.startswith("Lightning") else where.split("(")[1].rstrip(")")
+        parts = dotted.split(".")
+        for cut in range(len(parts) - 1, 0, -1):
+            try:
+                obj = importlib.import_module("nerfart_plugin." + ".".join(parts[:cut]))
+            except ModuleNotFoundError:
+                continue
+            for attr in parts[cut:]:
+                obj = getattr(obj, attr)
+            break
+        else:
+            raise AssertionError(f"{setting}: {where} names no module of the package")

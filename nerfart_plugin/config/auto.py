@@ -17,29 +17,29 @@ import torch
 #: every setting that accepts ``auto`` -> where it is decided
 AUTO_SETTINGS: dict[str, str] = {
     # the scene: what a capture requires, decided once before training
-    "render.background_model": "systems.scene_setup.decide_setup",
-    "render.occupancy.enabled": "systems.scene_setup.decide_setup",
-    "render.occupancy.sampling": "systems.scene_setup.decide_setup",
-    "encoding.resolution": "systems.scene_setup.decide_setup",
-    "encoding.levels": "systems.scene_setup.decide_setup",
-    "reconstruct.mask_ray_share": "systems.scene_setup.decide_setup",
+    "render.background_model": "data.setup.decide_setup",
+    "render.occupancy.enabled": "data.setup.decide_setup",
+    "render.occupancy.sampling": "data.setup.decide_setup",
+    "encoding.resolution": "data.setup.decide_setup",
+    "encoding.levels": "data.setup.decide_setup",
+    "reconstruct.mask_ray_share": "data.setup.decide_setup",
     # the data: the loader's image size policy
     "data.resolution": "data.images.choose_resolution (each loader)",
     # compute
     "device": "utils.device.pick_device",
-    "trainer.strategy": "Lightning's Trainer (fit.build_trainer)",
+    "trainer.strategy": "Lightning's Trainer (run.fit.build_trainer)",
     # components, each deciding its own
-    "backbone.grad_type": "fields.base.SDFField",
+    "backbone.grad_type": "fields.sdf.SDFField",
     "guidance.precision": "guidance.precision.compute_dtype (the CLIP guide)",
     "guidance.perceptual.precision": "guidance.precision.compute_dtype (the VGG perceptual network)",
     # the style: the stylization's prompts, negatives and view size
-    "source_prompt": "factories.build_style",
-    "stylize.resolution": "factories.stylize_settings",
-    "stylize.negatives": "factories.stylize_settings",
-    "stylize.negative_threshold": "factories.stylize_settings",
+    "source_prompt": "guidance.style.build_style",
+    "stylize.resolution": "run.factories.stylize_settings",
+    "stylize.negatives": "run.factories.stylize_settings",
+    "stylize.negative_threshold": "run.factories.stylize_settings",
     # outputs and sweeps
-    "render.resolution": "api.Run.camera_path (stage=render; recorded in the render folder's summary)",
-    "objective": "sweep.objective (a sweep's result, not a run's)",
+    "render.resolution": "results.run.Run.camera_path (stage=render; recorded in the render folder's summary)",
+    "objective": "run.sweep.objective (a sweep's result, not a run's)",
 }
 
 
