@@ -236,48 +236,20 @@ def _content(path: Path) -> str:
     return hash_files([Path(path)])
 
 
-@dataclass
-class _RunFolder:
-    """A run folder read back: its config, metrics and renderer (on the CPU, eval mode).
-
-    Attributes:
-        path: the run folder; checkpoint: the file the renderer was read from.
-        cfg: its typed config; metrics: its ``metrics.json`` ({} if none).
-        setup: the scene setup it was trained with (from the checkpoint's record).
-        renderer: the trained renderer.
-    """
-
-    path: Path
-    checkpoint: Path
-    cfg: RunConfig
-    metrics: dict
-    setup: SceneSetup
-    renderer: Any
-
-
-def _read_run_folder(run_dir: Path | str, checkpoint: str = "final.ckpt") -> _RunFolder:
-    """Read a reconstruction or stylization folder: ``config.yaml``, ``metrics.json`` and the renderer of
-    ``checkpoint`` (``last.ckpt`` for an unfinished run), rebuilt from the checkpoint's model record."""
-    path = Path(run_dir)
-    ckpt_path = path / checkpoint
-    if not (path / "config.yaml").is_file() or not ckpt_path.is_file():
-        raise NerfArtError(f"{path} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
-                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
-    cfg = read_config(path / "config.yaml")
-    ckpt = load_checkpoint(ckpt_path, fix=f"If {ckpt_path.name} was damaged, run the command that made this run "
-                                          "again: it sets the damaged file aside and trains again from the run's "
-                                          "last.ckpt (nothing else in the folder is touched).")
+def read_renderer(checkpoint: Path, cfg: RunConfig) -> Any:
+    """The trained renderer of a run's ``checkpoint`` (eval mode, on the CPU), rebuilt from ``cfg`` and the scene
+    setup the checkpoint records; read without running code."""
+    ckpt = load_checkpoint(checkpoint, fix=f"If {checkpoint.name} was damaged, run the command that made this run "
+                                           "again: it sets the damaged file aside and trains again from the run's "
+                                           "last.ckpt (nothing else in the folder is touched).")
     meta = ckpt.get(META_KEY)
     if not isinstance(meta, dict) or "setup" not in meta:
-        raise NerfArtError(f"{ckpt_path} records no scene setup (written by another version); rebuild its renderer "
+        raise NerfArtError(f"{checkpoint} records no scene setup (written by another version); rebuild its renderer "
                            "with nerfart_plugin.run.factories.build_scene(cfg) and load_renderer_state(checkpoint, "
                            "scene).")
-    setup = SceneSetup(**meta["setup"])
-    renderer = build_renderer(cfg, setup)
+    renderer = build_renderer(cfg, SceneSetup(**meta["setup"]))
     renderer.load_state_dict(prefixed_state(ckpt, "renderer."))
-    metrics_path = path / "metrics.json"
-    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    return _RunFolder(path, ckpt_path, cfg, metrics, setup, renderer.eval())
+    return renderer.eval()
 
 
 def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: str = "auto") -> Run:
@@ -291,9 +263,13 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
     folder = Path(folder).expanduser()
     if folder.suffix == ".ckpt":
         folder, checkpoint = folder.parent, folder.name
-    loaded = _read_run_folder(folder, checkpoint)
+    if not (folder / "config.yaml").is_file() or not (folder / checkpoint).is_file():
+        raise NerfArtError(f"{folder} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
+                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
+    cfg = read_config(folder / "config.yaml")
+    renderer = read_renderer(folder / checkpoint, cfg)
+    metrics = json.loads((folder / "metrics.json").read_text()) if (folder / "metrics.json").is_file() else {}
     record = migrate(folder)
-    cfg = loaded.cfg
     cams_file = folder / "cameras.json"
     if cams_file.is_file():
         cameras = CaptureCameras.from_json(json.loads(cams_file.read_text()))
@@ -301,12 +277,11 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         log.info("%s has no cameras.json: reading the cameras from its data (%s)", folder, cfg.data.path)
         dm = datamodule_of(cfg)
         cameras = CaptureCameras.from_scene(dm.load(), dm.ndc)
-    renderer = loaded.renderer
     if record.kind == "stylization":  # rendered as the stylization was evaluated
         renderer.reduce_samples(cfg.stylize.num_samples)
     dev = pick_device(device)
-    return Run(folder, loaded.checkpoint, record.kind, cfg, loaded.metrics, renderer.to(dev).eval(), cameras, dev,
-               stamp=loaded.metrics.get("stamp") or "", record=record)
+    return Run(folder, folder / checkpoint, record.kind, cfg, metrics, renderer.to(dev).eval(), cameras, dev,
+               stamp=metrics.get("stamp") or "", record=record)
 
 
 def read_config(path: Path) -> RunConfig:
