@@ -12,7 +12,8 @@ import trimesh
 from nerfart_plugin.data.rays import ndc_rays
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.export.mesh import export_mesh
-from nerfart_plugin.export.world_frame import frame_metadata, ndc_to_normalized, to_frame
+from nerfart_plugin.export.world_frame import frame_metadata, to_frame
+from nerfart_plugin.cameras.capture import ndc_to_normalized
 
 
 def similarity(scale: float, angle: float, t: tuple[float, float, float]) -> np.ndarray:

@@ -32,6 +32,19 @@ def _np(x: Any) -> np.ndarray:
     return x.detach().cpu().double().numpy() if torch.is_tensor(x) else np.asarray(x, dtype=np.float64)
 
 
+def ndc_to_normalized(points: np.ndarray, fx: float, fy: float, W: float, H: float,
+                      near_plane: float = 1.0, max_ndc_z: float = 0.999) -> tuple[np.ndarray, np.ndarray]:
+    """Invert NeRF's NDC warp (:func:`nerfart_plugin.data.rays.ndc_rays`): NDC points [N,3] -> the
+    normalized frame (the average camera at the origin looking along -z). Points with
+    ``z_ndc >= max_ndc_z`` lie at (near) infinity; returns ``(points [N,3], finite [N] bool)``."""
+    p = np.asarray(points, dtype=np.float64)
+    finite = p[:, 2] < max_ndc_z
+    z = 2.0 * near_plane / (np.minimum(p[:, 2], max_ndc_z) - 1.0)
+    x = -p[:, 0] * z * W / (2.0 * fx)
+    y = -p[:, 1] * z * H / (2.0 * fy)
+    return np.stack([x, y, z], -1), finite
+
+
 @dataclass
 class CaptureCameras:
     """A capture's cameras as a finished run needs them to render new views, without the photos.
@@ -77,6 +90,16 @@ class CaptureCameras:
         return cls(c2w, np.asarray(d["K"], dtype=np.float64), int(d["width"]), int(d["height"]), near, far,
                    d.get("capture", "object"),
                    bool(d.get("ndc", False)), T, list(d.get("train_ids", range(n))), list(d.get("names", [])))
+
+    def field_to_world(self, points: np.ndarray) -> np.ndarray:
+        """Points [N,3] of the field's frame (normalized; NDC for forward-facing captures, points at infinity
+        clipped to the far plane) -> the capture's world frame [N,3]."""
+        p = np.asarray(points, dtype=np.float64)
+        if self.ndc:
+            K = np.asarray(self.K[0], dtype=np.float64)
+            p, _ = ndc_to_normalized(p, float(K[0, 0]), float(K[1, 1]), float(self.width), float(self.height))
+        T = np.linalg.inv(np.asarray(self.normalization, dtype=np.float64))
+        return p @ T[:3, :3].T + T[:3, 3]
 
     def to_world(self, c2w: np.ndarray) -> np.ndarray:
         """Cameras [F,3,4] of the normalized frame in the capture's world frame."""

@@ -21,6 +21,7 @@ key (difflib). Numbers must be finite; booleans are not numbers.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Annotated, Any, Literal, Optional, Union
 
 from pydantic import BaseModel, BeforeValidator, Field, PrivateAttr, SerializeAsAny, field_validator
@@ -31,7 +32,7 @@ from nerfart_plugin.config.types import Color, Float, Fraction, Int, PathText, S
 
 __all__ = [
     "RunConfig", "RenderConfig", "OccupancyConfig", "ReconstructConfig", "StylizeConfig", "ExportConfig",
-    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "SECTIONS",
+    "TrainerConfig", "ExperimentConfig", "LoggerConfig", "RegionConfig", "SECTIONS",
 ]
 
 #: samples (rays x samples per ray) of one training step with grad: far beyond any GPU's memory above this
@@ -362,6 +363,42 @@ class MixConfig(Section):
                                        "out, 1: all of it)", changes_results=False)
 
 
+def _region_file(value: Any) -> Any:
+    """``region=<file>``: a region file, the shorthand of ``region.file=<file>``."""
+    return {"file": value} if isinstance(value, (str, Path)) else value
+
+
+Six = Annotated[list[Float], Field(min_length=6, max_length=6)]
+Three = Annotated[list[Float], Field(min_length=3, max_length=3)]
+
+
+class RegionConfig(Section):
+    """``region``: stylize, render and export only a part of the scene (``nerfart_plugin.api.Region``). The shapes
+    are in the capture's world frame (the exported meshes' and the viewer's); given together they are united,
+    then ``invert`` keeps the rest. ``region=<file>`` is ``region.file=<file>``."""
+
+    file: Optional[PathText] = Setting(None, description="a region file (region.npz: Region.save, the viewer's "
+                                       "Regions panel)")
+    box: Optional[Six] = Setting(None, description="a box [cx, cy, cz, hx, hy, hz]: centre and half sizes (world "
+                                 "units)")
+    ellipsoid: Optional[Six] = Setting(None, description="an ellipsoid [cx, cy, cz, rx, ry, rz]: centre and radii "
+                                       "(world units)")
+    rotation: Optional[Three] = Setting(None, description="the box's and ellipsoid's rotation, Euler angles in "
+                                        "degrees about x, then y, then z; null: none")
+    feather: Optional[Float] = Setting(None, ge=0.0, le=1e6, description="width of a shape's soft edge, outward "
+                                       "(world units); null: two cells of the region's grid")
+    margin: Optional[Float] = Setting(None, ge=0.0, le=1e6, description="how far the stylized geometry may grow "
+                                      "past the region (world units); null: the feather")
+    invert: bool = Setting(False, description="everywhere but the region")
+    resolution: Int = Setting(96, ge=8, le=256, description="cells a side of the grid the region is sampled on over "
+                              "the field box")
+
+    @property
+    def given(self) -> bool:
+        """A region is asked for (a file or a shape)."""
+        return any(v is not None for v in (self.file, self.box, self.ellipsoid))
+
+
 def Component(key: str) -> Any:
     """The annotation of the component section ``key``: its component's typed Config, picked by ``name``."""
     return Annotated[SerializeAsAny[ComponentConfig], BeforeValidator(lambda v: typed_section(key, v))]
@@ -404,6 +441,7 @@ class RunConfig(Section):
                               "the style's strength without retraining (0: the source, 1: as trained, 2: twice its "
                               "change; outputs named -s<strength>)", changes_results=False)
     mix: MixConfig = Field(default_factory=MixConfig)
+    region: Annotated[RegionConfig, BeforeValidator(_region_file)] = Field(default_factory=RegionConfig)
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
     viewer: ViewerConfig = Field(default_factory=ViewerConfig)
     render: RenderConfig = Field(default_factory=RenderConfig)
@@ -436,5 +474,5 @@ class RunConfig(Section):
 SECTIONS: dict[str, type[Section]] = {
     "render": RenderConfig, "reconstruct": ReconstructConfig, "stylize": StylizeConfig, "export": ExportConfig,
     "trainer": TrainerConfig, "experiment": ExperimentConfig, "logger": LoggerConfig, "mix": MixConfig,
-    "preview": PreviewConfig, "viewer": ViewerConfig,
+    "preview": PreviewConfig, "viewer": ViewerConfig, "region": RegionConfig,
 }

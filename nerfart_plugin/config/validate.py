@@ -52,6 +52,11 @@ def cross_checks(c: dict) -> list[Issue]:
               "per patch (patch_size^2 rays)")
     _per_step(issues, "stylize.chunk", sc["chunk"], "stylize.num_samples", ns, MAX_NOGRAD_SAMPLES, "per chunk")
     issues += _blend_checks(c)
+    region = c.get("region") or {}
+    if any(region.get(k) is not None for k in ("file", "box", "ellipsoid")) and c["stage"] == "reconstruct":
+        issues.append(Issue("region", {k: v for k, v in region.items() if v is not None}, "a region applies to a "
+                            "stylization (stage=stylize | all | preview) or to a finished one (stage=render | export), "
+                            "not to stage=reconstruct: drop region"))
     exp = c["experiment"]
     lambdas = [k for k in exp if k.startswith("lambda_")]
     if c["stage"] in ("stylize", "all") and lambdas and all(float(exp[k]) == 0 for k in lambdas):

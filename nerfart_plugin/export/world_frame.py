@@ -19,23 +19,11 @@ from typing import Any, Optional
 import numpy as np
 import trimesh
 
+from nerfart_plugin.cameras.capture import ndc_to_normalized
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.export.mesh import export_mesh
 
 FRAMES = ("world", "normalized")
-
-
-def ndc_to_normalized(points: np.ndarray, fx: float, fy: float, W: float, H: float,
-                      near_plane: float = 1.0, max_ndc_z: float = 0.999) -> tuple[np.ndarray, np.ndarray]:
-    """Invert NeRF's NDC warp (:func:`nerfart_plugin.data.rays.ndc_rays`): NDC points [N,3] -> the
-    normalized frame (the average camera at the origin looking along -z). Points with
-    ``z_ndc >= max_ndc_z`` lie at (near) infinity; returns ``(points [N,3], finite [N] bool)``."""
-    p = np.asarray(points, dtype=np.float64)
-    finite = p[:, 2] < max_ndc_z
-    z = 2.0 * near_plane / (np.minimum(p[:, 2], max_ndc_z) - 1.0)
-    x = -p[:, 0] * z * W / (2.0 * fx)
-    y = -p[:, 1] * z * H / (2.0 * fy)
-    return np.stack([x, y, z], -1), finite
 
 
 def to_frame(mesh: trimesh.Trimesh, frame: str, normalization: np.ndarray,

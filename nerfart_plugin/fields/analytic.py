@@ -133,4 +133,8 @@ class DensityFromSDF(Field):
     def forward(self, x: torch.Tensor, d: torch.Tensor) -> dict[str, torch.Tensor]:
         return {"rgb": _position_rgb(x), "sigma": self.geometry(x)}
 
+    def alpha(self, out: dict[str, torch.Tensor], deltas: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """``1 - exp(-sigma delta)`` [R,K]: renderable like a NeRF."""
+        return -torch.expm1(-out["sigma"].reshape(deltas.shape).float().clamp_min(0) * deltas.float().clamp_min(0))
+
 

@@ -74,6 +74,9 @@ class OccupancyGrid(nn.Module):
         n = self.resolution**3
         self.register_buffer("score", torch.zeros(n))
         self.register_buffer("occupied", torch.ones(n, dtype=torch.bool))
+        #: cells held as they are by every update (a stylization inside a region: the source's cells outside it,
+        #: so a ray that misses the region is sampled, hence rendered, exactly as the source renders it)
+        self.register_buffer("keep", torch.zeros(n, dtype=torch.bool), persistent=False)
         self._warned_empty = False
         self._padded_cache: dict[str, Tensor] = {}
         self._padded_version: dict[str, tuple] = {}
@@ -125,9 +128,12 @@ class OccupancyGrid(nn.Module):
         """Occupancy at ``rays_o + t rays_d`` for ray parameters ``t`` [R,M] -> bool [R,M] (as :meth:`query`)."""
         return self.at(self.ray_cells(rays_o, rays_d, t))
 
-    def _cell_points(self, idx: Tensor, generator: Optional[torch.Generator] = None) -> Tensor:
+    def _cell_points(self, idx: Tensor, generator: Optional[torch.Generator] = None, centre: bool = False) -> Tensor:
+        """One point in each cell ``idx`` [M] (flat, x slowest): uniformly at random, or its ``centre``."""
         r = self.resolution
         ijk = torch.stack([idx // (r * r), (idx // r) % r, idx % r], -1).float()
+        if centre:
+            return (ijk + 0.5) * self.cell_size - self.bound
         jitter = torch.rand(ijk.shape, generator=generator, device=ijk.device if generator is None else generator.device)
         return (ijk + jitter.to(ijk.device)) * self.cell_size - self.bound
 
@@ -143,6 +149,7 @@ class OccupancyGrid(nn.Module):
         else:
             rand = torch.randperm(n, device=device)[: n // 4]
             idx = torch.unique(torch.cat([rand, self.occupied.nonzero()[:, 0]]))
+        idx = idx[~self.keep[idx]]
         new = torch.empty(idx.shape[0], device=device)
         band = self.band(field)
         for s in range(0, idx.shape[0], self.chunk):
@@ -153,7 +160,7 @@ class OccupancyGrid(nn.Module):
         thr = field.occupancy_threshold
         if thr is None:  # density evidence: nerfacc's min(threshold, mean) with a floor
             thr = min(self.threshold, max(self.min_threshold, float(self.score.mean())))
-        occupied = self.score > thr
+        occupied = torch.where(self.keep, self.occupied, self.score > thr)
         if not bool(occupied.any()):
             # An empty grid is absorbing: no samples -> no gradient -> the field can never bring
             # its surface back (seen: NeuS + frequency encoding losing its surface for a few
@@ -167,6 +174,10 @@ class OccupancyGrid(nn.Module):
         self.occupied.copy_(occupied)
         log.debug("occupancy grid step %d: %.1f%% occupied", step, 100.0 * float(self.occupied.float().mean()))
         return True
+
+    def cell_centres(self) -> Tensor:
+        """[n^3, 3] the centre of every cell (field coordinates), in the grid's flat order."""
+        return self._cell_points(torch.arange(self.score.numel(), device=self.score.device), None, centre=True)
 
     def band(self, field: "Field") -> float:
         """SDF band half-width (world units): ``max(sdf_band, band_widths * field.surface_width())``.

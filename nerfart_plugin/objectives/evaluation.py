@@ -32,6 +32,7 @@ ImageNet judge, how much rendering weight lies off the surface, silhouette IoU).
 from __future__ import annotations
 
 import logging
+import math
 from typing import Any, Iterable, Mapping, Optional
 
 import torch
@@ -299,3 +300,61 @@ def lost_subject(iou: Optional[float]) -> Optional[str]:
             "stylize.lr_mlp, or raise experiment.lambda_perceptual")
     log.warning(text)
     return text
+
+
+# ---------------------------------------------------------------------- inside and outside a region
+def region_pixels(mask: Any, batch: dict[str, Any], samples: int = 96) -> torch.Tensor:
+    """[H*W] bool: the pixels whose rays meet a region (``mask``: a
+    :class:`~nerfart_plugin.fields.composite.RegionMask`; its geometry mask, the larger), sampled at ``samples``
+    points between each ray's near and far."""
+    o, d = batch["rays_o"].float(), batch["rays_d"].float()
+    t = torch.linspace(0, 1, samples, device=o.device)
+    near, far = batch["near"].float().reshape(-1, 1), batch["far"].float().reshape(-1, 1)
+    ts = near + (far - near) * t[None]
+    pts = o[:, None] + d[:, None] * ts[..., None]
+    hit = torch.zeros(o.shape[0], dtype=torch.bool, device=o.device)
+    for s in range(0, o.shape[0], 4096):
+        _, geo = mask(pts[s:s + 4096].reshape(-1, 3))
+        hit[s:s + 4096] = (geo.reshape(-1, samples) > 0).any(-1)
+    return hit
+
+
+def box_of(pixels: torch.Tensor) -> Optional[tuple[int, int, int, int]]:
+    """``(x0, y0, x1, y1)`` (exclusive ends) of the True pixels of [H,W], or None."""
+    ys, xs = torch.nonzero(pixels, as_tuple=True)
+    if ys.numel() == 0:
+        return None
+    return int(xs.min()), int(ys.min()), int(xs.max()) + 1, int(ys.max()) + 1
+
+
+def region_metrics(prompt: str, mask: Any, views: list[dict[str, Any]], source: torch.Tensor, stylized: torch.Tensor,
+                   view_ids: list[int]) -> dict[str, Any]:
+    """How a stylization inside a region changed the held-out views [B,3,H,W] in [0,1] (``views``: their ray
+    batches): outside (the pixels whose rays miss the region) the PSNR of the stylized views to the source's and
+    the largest pixel change; inside, the judge on each view's crop of the region's projection and the share of
+    pixels it covers."""
+    outside_sq, outside_n, largest, crops_src, crops_sty, covered, ids = 0.0, 0, 0.0, [], [], [], []
+    for i, v, a, b in zip(view_ids, views, source, stylized):
+        H, W = int(v["H"]), int(v["W"])
+        hit = region_pixels(mask, {k: v[k].to(a.device) for k in ("rays_o", "rays_d", "near", "far")}).reshape(H, W)
+        covered.append(float(hit.float().mean()))
+        out = ~hit
+        if bool(out.any()):
+            diff = (a - b)[:, out]
+            outside_sq += float(diff.square().sum())
+            outside_n += int(diff.numel())
+            largest = max(largest, float(diff.abs().max()))
+        box = box_of(hit)
+        if box is not None:
+            x0, y0, x1, y1 = box
+            crops_src.append(F.interpolate(a[None, :, y0:y1, x0:x1], size=(H, W), mode="bilinear",
+                                           align_corners=False)[0])
+            crops_sty.append(F.interpolate(b[None, :, y0:y1, x0:x1], size=(H, W), mode="bilinear",
+                                           align_corners=False)[0])
+            ids.append(i)
+    mse = outside_sq / max(outside_n, 1)
+    out: dict[str, Any] = {"outside_psnr_to_source": float(-10 * math.log10(max(mse, 1e-10))),  # 100 dB: identical
+                           "outside_max_change": largest, "covered_share": covered}
+    if crops_src:
+        out["judge_inside"] = judge_prompt(prompt, torch.stack(crops_src), torch.stack(crops_sty), ids)
+    return out

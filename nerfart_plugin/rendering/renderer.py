@@ -8,6 +8,7 @@ midpoints, converts to opacities with ``field.alpha`` and composites:
 
 from __future__ import annotations
 
+import copy
 import math
 from typing import Any, Callable, Optional, Sequence
 
@@ -112,6 +113,18 @@ class VolumeRenderer(nn.Module):
         scene (``render.view_samples``, ``stylize.num_samples``); None without a grid (e.g. NDC captures), whose
         uniform samples need :attr:`num_samples`, the density the field was trained with."""
         return int(k) if k and self.occupancy is not None else None
+
+    def with_field(self, field: Any, share_occupancy: bool = True) -> "VolumeRenderer":
+        """This renderer (its sampling settings, background) rendering ``field`` instead: a composite of this
+        field with others (:class:`~nerfart_plugin.fields.composite.CompositeField`). The occupancy grid is
+        shared (``share_occupancy``: a grid updated through either renderer serves both, as a stylization
+        inside a region trains) or copied."""
+        out = copy.copy(self)
+        out._modules = dict(self._modules)
+        out._modules["field"] = field
+        if not share_occupancy and self.occupancy is not None:
+            out._modules["occupancy"] = copy.deepcopy(self.occupancy)
+        return out
 
     def reduce_samples(self, k: Optional[int]) -> Optional[int]:
         """Sample ``k`` per ray in training and full views where :meth:`guided_samples` allows it (the

@@ -91,11 +91,12 @@ def blend_states(source: dict[str, Tensor], styles: Sequence[dict[str, Tensor]],
 @torch.no_grad()
 def refresh_occupancy(renderer: Any, passes: int = OCCUPANCY_PASSES) -> None:
     """Estimate the renderer's occupancy grid from its current field: scores cleared, then ``passes`` forced
-    updates over every cell (fixed seeds: the same field gets the same grid). No-op without a grid."""
+    updates over every cell (fixed seeds: the same field gets the same grid), but the cells the grid holds
+    (``keep``: outside every region of a composite). No-op without a grid."""
     grid = getattr(renderer, "occupancy", None)
     if grid is None:
         return
-    grid.score.zero_()
+    grid.score[~grid.keep] = 0.0  # cells held (outside a region) keep the source's evidence
     for i in range(passes):
         gen = torch.Generator(device=grid.score.device).manual_seed(i)
         grid.update(renderer.field, step=0, force=True, generator=gen)

@@ -25,7 +25,10 @@ from nerfart_plugin.export import MeshExtractor
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.export.world_frame import mesh_in_frame
 from nerfart_plugin.rendering.frames import render_cameras
-from nerfart_plugin.results.blend import blend_tag, blended_renderer, check_strength, check_weights
+from nerfart_plugin.fields.composite import CompositeField, RegionMask
+from nerfart_plugin.regions.region import DEFAULT_RESOLUTION, Region
+from nerfart_plugin.results.blend import (blend_tag, blended_renderer, check_strength, check_weights,
+                                          refresh_occupancy)
 from nerfart_plugin.results.record import RunRecord, migrate
 from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.systems.checkpoints import META_KEY, load_checkpoint, prefixed_state
@@ -35,7 +38,10 @@ from nerfart_plugin.utils.io import hash_files, slug
 
 log = logging.getLogger("nerfart_plugin")
 
-__all__ = ["Run", "open_run", "mix"]
+__all__ = ["Run", "open_run", "mix", "composite_renderer"]
+
+#: the region a stylization was trained in, in its run folder (:class:`~nerfart_plugin.regions.Region`)
+REGION_FILE = "region.npz"
 
 
 @dataclass
@@ -51,6 +57,11 @@ class Run:
         stamp: the file suffix of a run whose guidance was not a real CLIP (``_VERIFY-imagenet``), else "".
         weights: the blend this Run renders (:mod:`nerfart_plugin.results.blend`): ``(1.0,)`` the run as trained,
             ``(s,)`` the strength dial, one weight per run for a mix; mixed: the folders of a mix's runs.
+        region: the region the stylization applies in (the one it was trained in, ``region.npz`` in its folder,
+            or one applied by :meth:`with_region`); None: the whole scene. ``renderer`` then renders the
+            composite of the source and the stylized field inside it (:mod:`nerfart_plugin.fields.composite`).
+        own: the renderer its checkpoint holds (the stylized field alone; ``renderer`` when nothing is composed).
+        applied: the region was applied after training (:meth:`with_region`), which its output names say.
     """
 
     folder: Path
@@ -65,6 +76,9 @@ class Run:
     weights: tuple[float, ...] = (1.0,)
     mixed: tuple[str, ...] = ()
     record: Optional[RunRecord] = None
+    region: Optional[Region] = None
+    own: Any = None
+    applied: bool = False
     _source: Optional["Run"] = field(default=None, repr=False)
 
     # ------------------------------------------------------------------ what it is
@@ -97,7 +111,8 @@ class Run:
     def tag(self) -> str:
         """The part of output names that tells blends apart: "" as trained, ``-s0.50``, ``-mix0.50_0.50-<hash>``."""
 
-        return blend_tag(self.weights, self.mixed)
+        tag = blend_tag(self.weights, self.mixed)
+        return tag + (f"-region{self.region.content_hash[:6]}" if self.region is not None and self.applied else "")
 
     def with_strength(self, strength: float) -> "Run":
         """This stylization at ``strength`` (0: the source, 1: as trained, up to 2: past it), without retraining
@@ -107,6 +122,19 @@ class Run:
             raise NerfArtError(f"{self.folder}: with_strength needs a stylization as trained, not a "
                                f"{'blend' if self.kind == 'stylization' else 'reconstruction'}.")
         return mix([self], [check_strength(strength)])
+
+    def with_region(self, region: Region) -> "Run":
+        """This stylization inside ``region`` only (:class:`~nerfart_plugin.regions.Region`), the source
+        everywhere else, without retraining: the composite at render time, at any strength
+        (``run.with_region(r).with_strength(0.5)``). A Run that renders, meshes and writes like any other."""
+        if self.kind != "stylization" or len(self.weights) != 1:
+            raise NerfArtError(f"{self.folder}: with_region needs a stylization (at any strength), not a "
+                               f"{'mix' if self.kind == 'stylization' else 'reconstruction'}.")
+        if not isinstance(region, Region):
+            raise ConfigError(f"with_region: a nerfart_plugin.api.Region, not {type(region).__name__}.")
+        own = self.own if self.own is not None else self.renderer
+        renderer = composite_renderer(own, self.source.renderer, [(own.field, self.weights[0], region)], self.cameras)
+        return replace(self, renderer=renderer, region=region, own=own, applied=True)
 
     def scene(self):
         """The capture again (:class:`~nerfart_plugin.data.scene.Scene`: photos, masks, cameras), loaded
@@ -221,6 +249,8 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
     for r in runs:
         if r.kind != "stylization" or r.weights != (1.0,):
             raise ConfigError(f"mix: {r.folder} is not a stylization as trained; mix stylizations of one source.")
+    if any(r.region is not None for r in runs):  # region by region: each style inside its own region
+        return _mix_regions(runs, weights)
     source = runs[0].source
     content = _content(source.checkpoint) if len(runs) > 1 else ""  # one run (the strength dial): its own source
     for r in runs[1:]:
@@ -230,6 +260,42 @@ def mix(runs: Sequence[Run], weights: Sequence[float]) -> Run:
     renderer = blended_renderer(runs[0].renderer, source.renderer, [r.renderer for r in runs], weights)
     return replace(runs[0], renderer=renderer, weights=tuple(weights), mixed=tuple(str(r.folder) for r in runs),
                    _source=source)
+
+
+def _mix_regions(runs: Sequence[Run], weights: Sequence[float]) -> Run:
+    """Stylizations of one source, each inside its region (a whole-scene one everywhere) at its weight: the
+    composite ``out_src + Σ w_i m_i (out_i − out_src)`` (:class:`~nerfart_plugin.fields.composite.CompositeField`)."""
+    source = runs[0].source
+    for r in runs[1:]:
+        if _content(r.source.checkpoint) != _content(source.checkpoint):
+            raise ConfigError(f"mix: the runs stylize different sources: {source.checkpoint} and "
+                              f"{r.source.checkpoint} differ in content; mix stylizations of the same reconstruction.")
+    owns = [r.own if r.own is not None else r.renderer for r in runs]
+    parts = [(own.field, w, r.region) for own, w, r in zip(owns, weights, runs)]
+    renderer = composite_renderer(owns[0], source.renderer, parts, runs[0].cameras)
+    return replace(runs[0], renderer=renderer, weights=tuple(weights), mixed=tuple(str(r.folder) for r in runs),
+                   own=owns[0], applied=False, _source=source)
+
+
+def composite_renderer(own: Any, source: Any, parts: Sequence[tuple[Any, float, Optional[Region]]], cameras: Any,
+                       share_occupancy: bool = False, resolution: int = DEFAULT_RESOLUTION) -> Any:
+    """``own`` (a stylization's renderer: its sampling settings) rendering the source's field with ``parts``
+    [(field, weight, region or None: everywhere)] composed in (:class:`~nerfart_plugin.fields.composite.CompositeField`),
+    each region bound to the capture's frame (``cameras``) on a ``resolution``^3 grid. The occupancy grid is
+    estimated afresh from the composite unless it is shared with ``own`` (a regional run's own grid: trained on
+    that very composite)."""
+    bound = float(source.field.bound)
+    masks = [RegionMask.everywhere(bound) if region is None else region.bind(cameras.field_to_world, bound, resolution)
+             for _, _, region in parts]
+    composite = CompositeField(source.field, [(f, float(w), m) for (f, w, _), m in zip(parts, masks)])
+    device = next(own.parameters()).device
+    out = own.with_field(composite.to(device), share_occupancy=share_occupancy)
+    if not share_occupancy and out.occupancy is not None:
+        if source.occupancy is not None:  # the source's cells where no region reaches, re-estimated elsewhere
+            out.occupancy.load_state_dict(source.occupancy.state_dict())
+            out.occupancy.keep.copy_(composite.cells_outside(out.occupancy))
+        refresh_occupancy(out)
+    return out.eval()
 
 
 def _content(path: Path) -> str:
@@ -267,6 +333,7 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         raise NerfArtError(f"{folder} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
                            "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
     cfg = read_config(folder / "config.yaml")
+    region = Region.load(folder / REGION_FILE) if (folder / REGION_FILE).is_file() else None
     renderer = read_renderer(folder / checkpoint, cfg)
     metrics = json.loads((folder / "metrics.json").read_text()) if (folder / "metrics.json").is_file() else {}
     record = migrate(folder)
@@ -280,8 +347,16 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
     if record.kind == "stylization":  # rendered as the stylization was evaluated
         renderer.reduce_samples(cfg.stylize.num_samples)
     dev = pick_device(device)
-    return Run(folder, folder / checkpoint, record.kind, cfg, metrics, renderer.to(dev).eval(), cameras, dev,
-               stamp=metrics.get("stamp") or "", record=record)
+    run = Run(folder, folder / checkpoint, record.kind, cfg, metrics, renderer.to(dev).eval(), cameras, dev,
+              stamp=metrics.get("stamp") or "", record=record)
+    if region is None:
+        return run
+    # a regional stylization renders as it trained: the source with the stylized field inside its region,
+    # on the occupancy grid it trained (estimated on that composite)
+    own = run.renderer
+    composite = composite_renderer(own, run.source.renderer, [(own.field, 1.0, region)], cameras,
+                                   share_occupancy=True)
+    return replace(run, renderer=composite, region=region, own=own)
 
 
 def read_config(path: Path) -> RunConfig:

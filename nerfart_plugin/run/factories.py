@@ -29,6 +29,8 @@ from nerfart_plugin.data.setup import SceneSetup, decide_setup
 from nerfart_plugin.fields import occupancy_scores_opacity
 from nerfart_plugin.guidance import default_negative_threshold
 from nerfart_plugin.guidance.style import Style, build_style
+from nerfart_plugin.fields.composite import RegionMask
+from nerfart_plugin.regions.region import Region, region_from_config
 from nerfart_plugin.results.run import Run
 from nerfart_plugin.systems.base import build_renderer
 from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, checkpoint_meta, load_checkpoint, prefixed_state
@@ -147,6 +149,13 @@ def stylize_settings(scene: SceneContext, style: Optional[Style] = None):
     return sc.model_copy(update=update)
 
 
+def bound_region(scene: SceneContext, region: Optional[Region]) -> Optional[RegionMask]:
+    """``region`` bound to the scene's field (its frame and box, on ``region.resolution`` cells a side)."""
+    if region is None:
+        return None
+    return region.bind(scene.cameras.field_to_world, scene.setup.bound, scene.cfg.region.resolution)
+
+
 def build_stylization_system(scene: SceneContext, source_state: dict, style: Optional[Style] = None,
                              out_dir: Optional[Path] = None):
     """The stylization LightningModule of ``scene.cfg`` starting from ``source_state`` (the reconstruction's
@@ -157,7 +166,8 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     sc = stylize_settings(scene, style)
     views = scene.views(scene.scene.train_ids, sc.resolution)
     return StylizationSystem(c, scene.setup, style, source_state, views, settings=sc,
-                             out_dir=str(out_dir) if out_dir is not None else None)
+                             out_dir=str(out_dir) if out_dir is not None else None,
+                             region=bound_region(scene, region_from_config(c.region)))
 
 
 def checkpoint_run(ckpt: Path, scene: SceneContext) -> Run:

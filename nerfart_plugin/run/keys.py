@@ -13,6 +13,7 @@ from typing import Any
 
 from nerfart_plugin.config.migrate import CONFIG_FORMAT, to_format_1
 from nerfart_plugin.config.validate import component_result_settings, result_settings
+from nerfart_plugin.regions.region import region_from_config
 from nerfart_plugin.utils.io import config_hash, hash_files
 
 #: the settings layouts a key is computed for, newest first
@@ -59,12 +60,16 @@ def checkpoint_keys(scene: Any, checkpoint: Path) -> dict[int, str]:
 def stylization_keys(scene: Any, style: Any, source_keys: dict[int, str], stylize: Any) -> dict[int, str]:
     """Settings format -> the stylization's key: its source (``source_keys``: the reconstruction's keys or the
     checkpoint's), the prompts, the guidance, the loss weights, the ``stylize`` settings (``stylize``: the section
-    as keyed before the negatives' threshold was resolved, so existing runs keep their keys), trainer and seed."""
+    as keyed before the negatives' threshold was resolved, so existing runs keep their keys), trainer and seed,
+    and the region's content when the stylization is inside one."""
     c = scene.cfg
+    region = region_from_config(c.region)
     out = {}
     for fmt in FORMATS:
-        out[fmt] = _hashed({"recon": source_keys[fmt], "prompt": style.prompt, "source_prompt": style.source_prompt,
-                            "guidance": _plain(scene, fmt)["guidance"], "experiment": result_settings(c.experiment),
-                            "stylize": result_settings(stylize), "trainer": result_settings(c.trainer),
-                            "seed": c.seed}, fmt)
+        body = {"recon": source_keys[fmt], "prompt": style.prompt, "source_prompt": style.source_prompt,
+                "guidance": _plain(scene, fmt)["guidance"], "experiment": result_settings(c.experiment),
+                "stylize": result_settings(stylize), "trainer": result_settings(c.trainer), "seed": c.seed}
+        if region is not None:  # inside a region: its content and the grid it is sampled on
+            body["region"] = {"content": region.content_hash, "resolution": c.region.resolution}
+        out[fmt] = _hashed(body, fmt)
     return out

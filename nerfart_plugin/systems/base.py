@@ -134,6 +134,11 @@ class RenderSystem(L.LightningModule):
         return self.renderer.field
 
     @property
+    def view(self) -> VolumeRenderer:
+        """What renders the run's views (the trained renderer; a stylization inside a region: its composite)."""
+        return self.renderer
+
+    @property
     def occupied_fraction(self) -> Optional[float]:
         """Share of occupied cells of the occupancy grid (None without one)."""
         return self.renderer.occupied_fraction
@@ -144,6 +149,6 @@ class RenderSystem(L.LightningModule):
         """Render a full view batch (ints H, W) without grad -> images [H,W,C] (``with_normals=False``:
         colour, depth and opacity only, cheaper for SDF fields); ``renderer``: another renderer (the source)."""
         H, W = int(batch["H"]), int(batch["W"])
-        r = renderer if renderer is not None else self.renderer
+        r = renderer if renderer is not None else self.view
         out = r.render_chunked(to_device(batch, self.device), chunk=chunk, with_normals=with_normals)
         return {k: v.reshape(H, W, -1) for k, v in out.items() if torch.is_tensor(v)}

@@ -45,6 +45,8 @@ from nerfart_plugin.config.validate import section
 from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.guidance import NegativeSampler, random_patches
+from nerfart_plugin.fields.composite import CompositeField, RegionMask
+from nerfart_plugin.rendering import VolumeRenderer
 from nerfart_plugin.guidance.patches import subject_box
 from nerfart_plugin.guidance.style import Style, negatives_of
 from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
@@ -104,12 +106,16 @@ class StylizationSystem(RenderSystem):
     stage = "stylize"
 
     def __init__(self, cfg: Any, setup: SceneSetup, style: Style, source_state: dict, views: list[dict],
-                 settings: Optional[StylizeConfig | dict] = None, out_dir: Optional[str] = None) -> None:
+                 settings: Optional[StylizeConfig | dict] = None, out_dir: Optional[str] = None,
+                 region: Optional[RegionMask] = None) -> None:
         """``cfg``: the run's config (its ``experiment``, ``backbone``, ``encoding``, ``render`` and ``seed``;
         see :class:`~nerfart_plugin.systems.base.RenderSystem`); ``style``: the guide, perceptual network and
         prompts (:func:`~nerfart_plugin.guidance.style.build_style`); ``source_state``: the reconstruction's
         renderer tensors; ``views``: the training views' ray batches at the stylization's resolution;
-        ``settings``: the ``stylize`` section with its ``auto`` settings resolved (default ``cfg.stylize``)."""
+        ``settings``: the ``stylize`` section with its ``auto`` settings resolved (default ``cfg.stylize``);
+        ``region``: stylize only inside it (bound to the field's frame): every render of the stylization is then
+        the source with the stylized field composed in the region (:class:`~nerfart_plugin.fields.composite.CompositeField`),
+        the source's own outside."""
         super().__init__(cfg, setup)
         self.automatic_optimization = False
         c = self.run_cfg
@@ -129,6 +135,11 @@ class StylizationSystem(RenderSystem):
                      "keeps render.num_samples=%d", self.cfg.num_samples, self.renderer.num_samples)
         # Frozen helpers live outside the module tree: not trained, not checkpointed.
         self._frozen = {"source": source, "guidance": style.guidance, "perceptual": style.perceptual}
+        if region is not None:  # what renders: the composite, on the stylized renderer's own occupancy grid
+            composite = CompositeField(source.field, [(self.renderer.field, 1.0, region)])
+            self._frozen["view"] = self.renderer.with_field(composite, share_occupancy=True)
+            if self.renderer.occupancy is not None:  # outside the region the source's cells, as they are
+                self.renderer.occupancy.keep.copy_(composite.cells_outside(self.renderer.occupancy))
         self.views = views
         self.prompt, self.source_prompt, self.raw_prompt = style.prompt, style.source_prompt, style.raw_prompt
         self.negatives = negatives_of(style, self.cfg.negatives)
@@ -144,7 +155,7 @@ class StylizationSystem(RenderSystem):
         self._check_retained_graph_fits()
         self.occupancy_every = 0 if self.freeze_geometry else self.cfg.occupancy_update_every
         if self.occupancy_every > 0:  # the SDF band the moving surface is sampled in
-            self.renderer.widen_occupancy_band(self.cfg.occupancy_band)
+            self.view.widen_occupancy_band(self.cfg.occupancy_band)
         # set by on_fit_start (they need the guidance on the training device)
         self.tgt_txt: Optional[Tensor] = None
         self.src_txt: Optional[Tensor] = None
@@ -177,6 +188,11 @@ class StylizationSystem(RenderSystem):
     def source(self):
         """The frozen source renderer (I_src)."""
         return self._frozen["source"]
+
+    @property
+    def view(self) -> VolumeRenderer:
+        """What renders the stylization: the composite inside a region, else the stylized renderer itself."""
+        return self._frozen.get("view", self.renderer)
 
     @property
     def guidance(self):
@@ -227,11 +243,25 @@ class StylizationSystem(RenderSystem):
             out = self.source.render_chunked(to_device(v, self.device), chunk=self.cfg.chunk, with_normals=False)
             img = out["rgb"].reshape(v["H"], v["W"], 3).permute(2, 0, 1)[None].clamp(0, 1)
             entry = {"img": img, "emb": self.guidance.encode_image(img), "opacity": out["opacity"],
-                     "box": subject_box(out["opacity"].reshape(v["H"], v["W"]))}
+                     "box": self._patch_box(v, out)}
             if self.lambdas["perceptual"] > 0:
                 entry["feats"] = [f.detach() for f in self.perceptual.features(img)]
             self._cache[i] = entry
         return self._cache[i]
+
+    def _patch_box(self, view: dict[str, Any], out: dict[str, Tensor]) -> Optional[tuple[int, int, int, int]]:
+        """Where a view's local patches are drawn: the subject's box (source opacity > 0.5), inside a region the
+        box of the subject's visible surface within it (its colour mask > 0.5 at the source's depth), so the
+        local terms look at what may change; the subject's box when the view does not see the region."""
+        H, W = int(view["H"]), int(view["W"])
+        opacity = out["opacity"].reshape(H, W)
+        composite = self._frozen.get("view")
+        if composite is None:
+            return subject_box(opacity)
+        rays_o, rays_d = view["rays_o"].to(self.device), view["rays_d"].to(self.device)
+        colour, _ = composite.field.regions[0](rays_o + rays_d * out["depth"].reshape(-1, 1))
+        inside = subject_box(opacity * colour.reshape(H, W))
+        return inside if inside is not None else subject_box(opacity)
 
     def view_for_step(self, step: int) -> int:
         """A fresh random permutation of the views every epoch, a function of (seed, step) only."""
@@ -293,9 +323,9 @@ class StylizationSystem(RenderSystem):
         H, W = view["H"], view["W"]
         graph = None
         if self.cfg.backprop == "retain":
-            first, graph = render_with_graph(self.renderer, view, self.cfg.chunk, perturb=True)
+            first, graph = render_with_graph(self.view, view, self.cfg.chunk, perturb=True)
         else:
-            first = render_fixed_samples(self.renderer, view, self.cfg.chunk, perturb=True)
+            first = render_fixed_samples(self.view, view, self.cfg.chunk, perturb=True)
         t_render = time.perf_counter()
         img = first["rgb"].reshape(H, W, 3).permute(2, 0, 1)[None].clone().requires_grad_(True)
         terms = self.image_losses(img, src, g)
@@ -318,7 +348,7 @@ class StylizationSystem(RenderSystem):
             graph, first.graph = first.graph, None  # freed with the backward
             ray_terms = backprop_retained(graph, view, first.rgb_grad, ray_losses, backward=self.manual_backward)
         else:
-            ray_terms = backprop_patches(self.renderer, view, first.render["t_samples"], first.rgb_grad,
+            ray_terms = backprop_patches(self.view, view, first.render["t_samples"], first.rgb_grad,
                                          self.cfg.patch_size ** 2, ray_losses, backward=self.manual_backward)
         check_finite_grads(self, step)
         opt.step()
@@ -353,7 +383,7 @@ class StylizationSystem(RenderSystem):
         (all cells), so rays find the surface wherever the stylization moves it. Returns True if updated."""
         if self.occupancy_every <= 0 or step % self.occupancy_every:
             return False
-        return self.renderer.update_occupancy(step, force=True)
+        return self.view.update_occupancy(step, force=True)
 
     def configure_optimizers(self) -> Any:
         groups = param_groups(self.renderer, self.cfg.lr, self.cfg.lr_mlp, geometry=not self.freeze_geometry)

@@ -17,6 +17,7 @@ from nerfart_plugin.cameras.capture import CaptureCameras, viewer_cameras
 from nerfart_plugin.config.auto import component_choices, recorded
 from nerfart_plugin.config.schema import ViewerConfig
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.regions.region import region_from_config
 from nerfart_plugin.results.record import RunRecord, key_in_name
 from nerfart_plugin.results.run import Run, mix, open_run
 from nerfart_plugin.run.factories import SceneContext
@@ -177,8 +178,13 @@ def write_cameras(scene: SceneContext, folder: Path) -> None:
 
 def blended_run(cfg: Any, folder: Optional[Path]) -> Run:
     """The :class:`~nerfart_plugin.results.run.Run` that ``stage=render`` / ``stage=export`` work on: ``mix.runs``
-    at ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``."""
+    at ``mix.weights`` when given, else ``folder`` (a run folder or a checkpoint in one) at ``strength``; with a
+    ``region``, each stylization inside it only (the source elsewhere)."""
+    region = region_from_config(cfg.region)
     if cfg.mix.runs:
-        return mix([open_run(Path(r).expanduser(), device=cfg.device) for r in cfg.mix.runs], cfg.mix.weights)
+        runs = [open_run(Path(r).expanduser(), device=cfg.device) for r in cfg.mix.runs]
+        return mix([r.with_region(region) for r in runs] if region is not None else runs, cfg.mix.weights)
     run = open_run(folder, device=cfg.device)
+    if region is not None:
+        run = run.with_region(region)
     return run if cfg.strength == 1.0 else run.with_strength(cfg.strength)

@@ -18,12 +18,14 @@ from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, ver
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.guidance.style import Style, style_choices
-from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
+from nerfart_plugin.objectives.evaluation import (region_metrics, clip_scores, edge_similarity, evaluation_views, judge_prompt,
     lost_subject, off_surface_share, silhouette_iou, view_consistency)
 from nerfart_plugin.rendering.frames import render_cameras
 from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
 from nerfart_plugin.run.fit import FitResult, fit_stage
 from nerfart_plugin.run.folders import RunFolder
+from nerfart_plugin.regions.region import region_from_config
+from nerfart_plugin.results.run import REGION_FILE
 from nerfart_plugin.run.keys import checkpoint_keys, stylization_keys
 from nerfart_plugin.run.stages.base import LiveViewerFactory, TrainingStage
 from nerfart_plugin.run.stages.reconstruct import ReconstructStage
@@ -32,6 +34,11 @@ from nerfart_plugin.utils.images import to_uint8
 from nerfart_plugin.utils.io import atomic_path, slug
 
 log = logging.getLogger("nerfart_plugin")
+
+
+#: rays that stay this many occupancy cells clear of a region's geometry are "outside" it: they cross only cells
+#: the stylization held as the source's (:attr:`~nerfart_plugin.fields.occupancy.OccupancyGrid.keep`)
+OUTSIDE_CELLS = 2.5
 
 
 class StylizeStage(TrainingStage):
@@ -52,6 +59,7 @@ class StylizeStage(TrainingStage):
         c = scene.cfg
         self.style, self.source = style, source
         self.settings = stylize_settings(scene, style)
+        self.region = region_from_config(c.region)
         self.keys = stylization_keys(scene, style, source_keys, stylize_settings(scene))
         self.names = [f"{slug(style.raw_prompt)}-{c.backbone.name}-{key}{style.stamp}" for key in self.keys.values()]
         self.folder = RunFolder.find(scene.root / "stylizations", self.names, "stylization")
@@ -67,6 +75,8 @@ class StylizeStage(TrainingStage):
         self.source_state = load_renderer_state(self.source, self.scene)
 
     def build_system(self) -> Any:
+        if self.region is not None:  # the folder says where it stylizes (open_run renders the composite from it)
+            self.region.save(self.folder.path / REGION_FILE)
         return build_stylization_system(self.scene, self.source_state, self.style, out_dir=self.folder.path)
 
     def fit(self, system: Any) -> FitResult:
@@ -124,11 +134,16 @@ class StylizeStage(TrainingStage):
                                                    torch.stack([o["opacity"][..., 0] for o in sty_out]))
         self.save_heldout(ids, src, sty)
         self.heldout_views = (ids, src, sty)  # what a preview shows, without reading the PNGs back
+        if self.region is not None:  # outside: the rays clear of the region and of the occupancy cells it reaches
+            grid = system.view.occupancy
+            reach = OUTSIDE_CELLS * grid.cell_size if grid is not None else 0.0
+            metrics["region"] = region_metrics(self.style.raw_prompt, system.view.field.regions[0].grown(reach), views,
+                                               src, sty, ids)
         metrics["judge"] = judge_prompt(self.style.raw_prompt, src, sty, ids)
         metrics["evaluated_on"] = evaluation_views(scene)
 
         dev = self.scene.device
-        metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.renderer, to_device(v, dev))
+        metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.view, to_device(v, dev))
                                                        for v in views]))
         metrics["off_surface_weight_source"] = float(np.mean([off_surface_share(system.source, to_device(v, dev))
                                                               for v in views]))
@@ -157,7 +172,7 @@ class StylizeStage(TrainingStage):
         path = RenderPath("orbit", c2ws, K.expand(len(c2ws), 3, 3), int(ref["H"]), int(ref["W"]))
         label = "stylized" + (f" ({stamp.strip('_')})" if stamp else "")
         rendered: dict[str, list] = {}
-        frames = render_cameras(system.renderer, path, ndc=self.scene.ndc, near=float(scene.near.min()),
+        frames = render_cameras(system.view, path, ndc=self.scene.ndc, near=float(scene.near.min()),
                                 far=float(scene.far.max()), chunk=sc.chunk, device=self.scene.device,
                                 channels=("side",), source=system.source, labels=("source", label), progress=False,
                                 outputs=rendered)["side"]
@@ -174,7 +189,7 @@ class StylizeStage(TrainingStage):
         stamp, mesh_dir = self.style.stamp, self.folder.path / "mesh"
         src = export_source_mesh(self.scene, system.source.field, mesh_dir / "source",
                                  shared=Path(self.source).parent / "mesh" / "source")
-        sty = export_mesh(self.scene, system.field, mesh_dir / f"stylized{stamp}")
+        sty = export_mesh(self.scene, system.view.field, mesh_dir / f"stylized{stamp}")
         if src is None or sty is None:
             return {}
         sdf = system.source.field.signed_distance()
