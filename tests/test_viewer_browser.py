@@ -159,6 +159,28 @@ def test_moving_the_strength_dial_changes_the_frame(page):
     assert wait_for(lambda: page.viewer.settings.weights[0] == pytest.approx(1.0), 10)
 
 
+def test_a_region_box_is_drawn_applied_and_saved(page, styles):
+    """The Region panel: the box shows with its gizmo, "inside the box only" renders the composite (the frame
+    changes), and "Save region" writes the box that Region.load reads back."""
+    from nerfart_plugin.api import Region
+    from nerfart_plugin.viewer.browser import wait_for
+
+    panel = page.viewer.panels["region"]
+    before = settle(page)
+    page.check("Show the region box")
+    assert wait_for(lambda: panel.gizmo.visible and panel.box.visible, 10)
+    page.check("Style inside the box only")
+    assert wait_for(lambda: page.viewer.settings.region is not None, 10)
+    after = settle(page)
+    assert np.abs(before.astype(int) - after.astype(int)).max() > 0  # the source shows outside the box
+    page.click("Save region")
+    assert wait_for(lambda: bool(list((styles["red"] / "regions").glob("region-*.npz"))), 10)
+    saved = Region.load(next((styles["red"] / "regions").glob("region-*.npz")))
+    assert saved.content_hash == panel.region().content_hash and "region.box=[" in panel.note.content
+    page.check("Style inside the box only")
+    assert wait_for(lambda: page.viewer.settings.region is None, 10)
+
+
 def test_each_tab_keeps_its_own_camera_and_a_closed_tab_is_dropped(page):
     from nerfart_plugin.viewer.browser import wait_for
 

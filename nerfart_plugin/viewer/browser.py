@@ -101,6 +101,10 @@ class BrowserPage:
         """Click the button labelled ``name``."""
         self.page.get_by_role("button", name=name).first.click()
 
+    def check(self, label: str) -> None:
+        """Click the checkbox labelled ``label`` (ticks or clears it)."""
+        self.page.get_by_role("checkbox", name=label).first.click()
+
     def open_folder(self, label: str) -> None:
         """Expand the collapsed panel folder ``label``."""
         self.page.get_by_text(label, exact=True).first.click()

@@ -23,7 +23,7 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 import torch
 
-from nerfart_plugin.api import mix, open_run
+from nerfart_plugin.api import Region, mix, open_run
 from nerfart_plugin.cameras.capture import CaptureCameras
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.rendering.frames import render_cameras
@@ -47,11 +47,13 @@ class ViewSettings:
         channel: one of :data:`VIEW_CHANNELS`.
         mode: one of :data:`VIEW_MODES` (a reconstruction: always its own field).
         weights: the blend: this run's strength first, then one weight per sibling stylization (0: left out).
+        region: the region this run's style applies in (the Region panel's box; None: as the run was trained).
     """
 
     channel: str = "rgb"
     mode: str = "stylized"
     weights: tuple[float, ...] = (1.0,)
+    region: Optional[Region] = None
 
 
 def render_frame(renderer: Any, cams: CaptureCameras, camera: ViewCamera, long_side: int, channel: str, chunk: int,
@@ -87,7 +89,7 @@ class RunField:
         self.version = 0
         self._opened: dict[Path, Any] = {}
         self._source: Any = None
-        self._blend: tuple[tuple[float, ...], Any] = ((1.0,) + (0.0,) * len(self.siblings), run.renderer)
+        self._blend: tuple[tuple[Any, ...], Any] = ((1.0,) + (0.0,) * len(self.siblings) + ("",), run.renderer)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewer-render")
 
     def timed_render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> tuple[np.ndarray, float]:
@@ -116,8 +118,9 @@ class RunField:
         if settings.mode == "source":
             return self.source_renderer
         weights = tuple(settings.weights) + (0.0,) * (1 + len(self.siblings) - len(settings.weights))
-        if weights != self._blend[0]:
-            self._blend = (weights, self._blended(weights))
+        key = weights + (settings.region.content_hash if settings.region is not None else "",)
+        if key != self._blend[0]:
+            self._blend = (key, self._blended(weights, settings.region))
         return self._blend[1]
 
     @property
@@ -129,8 +132,8 @@ class RunField:
             self._source = mix([self.run], [0.0]).renderer
         return self._source
 
-    def _blended(self, weights: tuple[float, ...]) -> Any:
-        runs, ws = [self.run], [weights[0]]
+    def _blended(self, weights: tuple[float, ...], region: Optional[Region] = None) -> Any:
+        runs, ws = [self.run if region is None else self.run.with_region(region)], [weights[0]]
         for folder, w in zip(self.siblings, weights[1:]):
             if w != 0.0:
                 runs.append(self._sibling(folder))
