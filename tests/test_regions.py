@@ -175,3 +175,18 @@ def test_a_regional_stylization_changes_nothing_outside_its_region(tmp_path):
     # a region applied after training to the whole-scene run: the source outside, that run's field inside
     both = open_run(whole["stylization"]["dir"], device="cpu").with_region(opened.region)
     assert both.tag.startswith("-region") and isinstance(both.renderer.field, CompositeField)
+
+
+@pytest.mark.slow
+def test_a_region_that_covers_the_whole_scene_gives_the_whole_scene_result(tmp_path):
+    """Inside a box larger than the scene the stylization trains to the very tensors of the whole-scene one."""
+    from nerfart_plugin.run.pipeline import run
+    from nerfart_plugin.systems.checkpoints import load_checkpoint
+
+    base = [f"output_root={tmp_path}", *TINY, "guidance=toy", "reconstruct.steps=30", "stylize.steps=3", "+prompt=red",
+            "export.enabled=false", "stylize.video_frames=0"]
+    whole = Path(run(composed(*base))["stylization"]["dir"])
+    inside = Path(run(composed(*base, "region.box=[0,0,0,1000,1000,1000]"))["stylization"]["dir"])
+    assert whole != inside
+    a, b = load_checkpoint(whole / "final.ckpt")["state_dict"], load_checkpoint(inside / "final.ckpt")["state_dict"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)

@@ -130,6 +130,9 @@ class Run:
         if self.kind != "stylization" or len(self.weights) != 1:
             raise NerfArtError(f"{self.folder}: with_region needs a stylization (at any strength), not a "
                                f"{'mix' if self.kind == 'stylization' else 'reconstruction'}.")
+        if self.own is None and self.weights != (1.0,):
+            raise NerfArtError(f"{self.folder}: apply the region first, then the strength: "
+                               "run.with_region(region).with_strength(s).")
         if not isinstance(region, Region):
             raise ConfigError(f"with_region: a nerfart_plugin.api.Region, not {type(region).__name__}.")
         own = self.own if self.own is not None else self.renderer
