@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
 from nerfart_plugin.errors import NerfArtError
+from nerfart_plugin.export.splats import SplatFit, export_splats
+from nerfart_plugin.results.run import Run
+from nerfart_plugin.utils.io import atomic_write_json
 from nerfart_plugin.export.run_meshes import export_mesh
 from nerfart_plugin.run.factories import SceneContext, checkpoint_run
 from nerfart_plugin.run.stages.base import StageResult, blended_run
@@ -39,6 +43,21 @@ class ExportStage:
         ckpt = run.checkpoint
         stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{run.tag}"
         mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
-        return StageResult(ckpt, {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)})
+        summary = {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)}
+        if self.cfg.export.splats:
+            summary["splats"] = self.splats(run, ckpt.parent / "splats" / f"{stem.name.replace('export-', 'splats-')}.ply")
+        return StageResult(ckpt, summary)
+
+    def splats(self, run: Run, path: Path) -> dict[str, Any]:
+        """The run's field as splats at ``path`` (:func:`~nerfart_plugin.export.splats.export_splats`), recorded in
+        the run's ``metrics.json`` under ``splats`` (by file name)."""
+        ec = self.cfg.export
+        fit = SplatFit(count=ec.splat_count, steps=ec.splat_steps, resolution=ec.splat_resolution, seed=self.cfg.seed)
+        report = export_splats(run, path, fit, frame=ec.frame)
+        metrics_file = Path(run.folder) / "metrics.json"
+        metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
+        metrics.setdefault("splats", {})[path.name] = report
+        atomic_write_json(metrics_file, metrics)
+        return report
 
 
