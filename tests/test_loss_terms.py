@@ -13,7 +13,8 @@ from nerfart_plugin.guidance.vgg import EdgePerceptual
 from nerfart_plugin.systems.base import build_renderer, step_seed
 from nerfart_plugin.systems.reconstruction import RECONSTRUCTION_LOSSES, ReconstructionSystem
 from nerfart_plugin.systems.stylization import StylizationSystem
-from nerfart_plugin.systems.stylization_losses import STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES
+from nerfart_plugin.systems.stylization_losses import (STYLE_IMAGE_LOSSES, STYLIZATION_IMAGE_LOSSES,
+                                                       STYLIZATION_RAY_LOSSES)
 
 BACKBONE = {"name": "volsdf", "hidden_dim": 16, "n_layers": 1, "feature_dim": 8, "color_hidden_dim": 16,
             "color_layers": 1}
@@ -39,10 +40,11 @@ def _recon(tv_weight: float, rays: dict | None = None, **cfg) -> ReconstructionS
 
 
 def test_every_term_is_one_row_with_its_lambda():
-    from nerfart_plugin.config.schema import ExperimentConfig, ReconstructConfig
+    from nerfart_plugin.config.schema import ExperimentConfig, ReconstructConfig, StyleImageConfig
 
     for table, section in ((RECONSTRUCTION_LOSSES, ReconstructConfig),
-                           (STYLIZATION_IMAGE_LOSSES + STYLIZATION_RAY_LOSSES, ExperimentConfig)):
+                           (STYLIZATION_IMAGE_LOSSES + STYLIZATION_RAY_LOSSES, ExperimentConfig),
+                           (STYLE_IMAGE_LOSSES, StyleImageConfig)):
         names = [t.name for t in table]
         assert len(names) == len(set(names))
         assert all(t.lambda_key in section.model_fields and t.doc for t in table)

@@ -43,7 +43,7 @@ def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, ca
 
 def test_preview_needs_a_prompt_and_a_sane_size(tmp_path):
     proc = run_cli([f"output_root={tmp_path}", "stage=preview", f"hydra.run.dir={tmp_path}/hydra"])
-    assert proc.returncode == 2 and "stage=preview needs a style prompt" in proc.stdout + proc.stderr
+    assert proc.returncode == 2 and "stage=preview needs a style: add +prompt=" in proc.stdout + proc.stderr
     proc = run_cli([f"output_root={tmp_path}", "stage=preview", "+prompt=zebra", "preview.resolution=4",
                     f"hydra.run.dir={tmp_path}/hydra"])
     assert proc.returncode == 2 and "preview.resolution=4" in proc.stdout + proc.stderr

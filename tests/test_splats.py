@@ -6,8 +6,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -160,27 +158,17 @@ def test_gsplat_and_the_pytorch_rasterizer_agree():
 
 
 # ---------------------------------------------------------------------- real clients
-NPM_PACKAGES = ("@playcanvas/splat-transform@3.10.2", "@sparkjsdev/spark@2.2.0", "three@0.180.0")
-
-
 @pytest.fixture(scope="session")
 def splat_clients() -> Path:
-    """The npm clients, installed once into a cache folder (NERFART_NPM_CACHE, default ~/.cache/nerfart_plugin/npm);
-    skipped where Node and npm are absent (unless the browser tests are required, as in CI)."""
-    npm = shutil.which("npm")
-    if npm is None or shutil.which("node") is None:
+    """The npm clients (benchmarks/splat_clients.py), installed once; skipped where Node and npm are absent
+    (unless the browser tests are required, as in CI)."""
+    from benchmarks.splat_clients import install_clients, missing_node
+
+    if missing_node():
         if os.environ.get("NERFART_REQUIRE_BROWSER"):
             pytest.fail("npm and node are required for the splat client tests (NERFART_REQUIRE_BROWSER is set)")
-        pytest.skip("no npm / node here: the splat client tests need them")
-    root = Path(os.environ.get("NERFART_NPM_CACHE", Path.home() / ".cache" / "nerfart_plugin" / "npm"))
-    marker = root / ("installed-" + "-".join(p.replace("/", "_") for p in NPM_PACKAGES))
-    if not marker.exists():
-        root.mkdir(parents=True, exist_ok=True)
-        (root / "package.json").write_text('{"name": "nerfart-splat-clients", "private": true}\n')
-        subprocess.run([npm, "install", "--no-audit", "--no-fund", "--ignore-scripts", *NPM_PACKAGES], cwd=root,
-                       check=True, capture_output=True, timeout=600)
-        marker.touch()
-    return root
+        pytest.skip(missing_node())
+    return install_clients()
 
 
 @pytest.fixture(scope="module")
@@ -203,9 +191,9 @@ def exported(tmp_path_factory, shared_runs) -> dict:
 def test_splat_transform_reads_the_export_and_counts_what_we_wrote(splat_clients, exported):
     """PlayCanvas' splat-transform (Node) reads the .ply: the same count and bounds as ours, and it converts it
     to SuperSplat's compressed .ply."""
-    tool = splat_clients / "node_modules" / ".bin" / "splat-transform"
-    out = subprocess.run([str(tool), str(exported["path"]), "--stats", "json", "null"], capture_output=True, text=True,
-                         timeout=300)
+    from benchmarks.splat_clients import splat_transform
+
+    out = splat_transform(splat_clients, str(exported["path"]), "--stats", "json", "null")
     assert out.returncode == 0, out.stderr[-2000:]
     stats = json.loads(out.stdout[out.stdout.index("{"):])
     ours = read_ply(exported["path"])
@@ -217,79 +205,32 @@ def test_splat_transform_reads_the_export_and_counts_what_we_wrote(splat_clients
         assert data["max"][j] == pytest.approx(float(ours.means[:, i].max()), rel=1e-4, abs=1e-5)
     assert sum(data["nanCount"]) == 0 and sum(data["infCount"]) == 0
     converted = exported["folder"] / "head.compressed.ply"
-    done = subprocess.run([str(tool), str(exported["path"]), str(converted)], capture_output=True, text=True,
-                          timeout=300)
+    done = splat_transform(splat_clients, str(exported["path"]), str(converted))
     assert done.returncode == 0 and converted.stat().st_size > 0, done.stderr[-2000:]
 
 
 @pytest.mark.slow
-def test_spark_in_chromium_draws_the_export_as_our_rasterizer_does(splat_clients, exported, tmp_path):
+def test_spark_in_chromium_draws_the_export_as_our_rasterizer_does(splat_clients, exported):
     """Spark (three.js, from npm) in the headless Chromium of the viewer tests draws the exported .ply from the
     capture's first training camera: its picture's silhouette matches our rasterizer's (IoU >= 0.9) and its
     colours too (PSNR >= 20 dB)."""
-    import functools
-    import http.server
-    import threading
-    import urllib.parse
+    from benchmarks.splat_clients import spark_screenshot
 
-    from PIL import Image
-
-    from nerfart_plugin.viewer.browser import CHROMIUM_ARGS, find_chromium, missing_browser
+    from nerfart_plugin.viewer.browser import missing_browser
 
     if missing_browser():
         pytest.skip(missing_browser())
-    playwright = pytest.importorskip("playwright.sync_api")
-    page_dir = splat_clients / f"page-{os.getpid()}"
-    page_dir.mkdir(exist_ok=True)
-    shutil.copy(Path(__file__).parent / "data" / "spark_page.html", page_dir / "index.html")
-    shutil.copy(exported["path"], page_dir / "splats.ply")
     cams, W, H = exported["run"].cameras, 96, 96
     i = cams.train_ids[0]
     c2w = cams.to_world(np.asarray(cams.c2w)[i:i + 1, :3, :4])[0]
     Kp = np.asarray(cams.K[i], dtype=np.float64) * np.array([[W / cams.width], [H / cams.height], [1.0]])
-    cam = {"matrix": _gl_matrix(c2w).T.reshape(-1).tolist(), "projection": _gl_projection(Kp, W, H).T.reshape(-1).tolist()}
-
-    class Quiet(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args):  # noqa: D102
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(Quiet, directory=str(splat_clients)))
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        url = (f"http://127.0.0.1:{server.server_address[1]}/{page_dir.name}/index.html?w={W}&h={H}"
-               f"&url=/{page_dir.name}/splats.ply&cam=" + urllib.parse.quote(json.dumps(cam)))
-        with playwright.sync_playwright() as pw:
-            browser = pw.chromium.launch(executable_path=find_chromium(), args=list(CHROMIUM_ARGS))
-            page = browser.new_page(viewport={"width": W, "height": H})
-            page.goto(url)
-            page.wait_for_function("window.__status && window.__status !== 'loading'", timeout=120_000)
-            assert page.evaluate("window.__status") == "done"
-            page.locator("canvas").screenshot(path=str(tmp_path / "spark.png"))
-            browser.close()
-    finally:
-        server.shutdown()
-        shutil.rmtree(page_dir, ignore_errors=True)
-    spark = np.asarray(Image.open(tmp_path / "spark.png").convert("RGB"), dtype=np.float64) / 255
+    spark = spark_screenshot(splat_clients, exported["path"], c2w, Kp, W, H)
     ours = rasterize(read_ply(exported["path"]), torch.tensor(c2w, dtype=torch.float32),
                      torch.tensor(Kp, dtype=torch.float32), H, W)["rgb"].numpy()
     a, b = ours.sum(-1) < 2.9, spark.sum(-1) < 2.9
     iou = (a & b).sum() / max(1, (a | b).sum())
     psnr_db = -10 * np.log10(((ours - spark) ** 2).mean())
     assert a.mean() > 0.05 and iou >= 0.9 and psnr_db >= 20, (iou, psnr_db)
-
-
-def _gl_matrix(c2w: np.ndarray) -> np.ndarray:
-    """A camera-to-world [3,4] of OpenCV axes as the 4x4 of three.js (OpenGL axes: y up, looking along -z)."""
-    m = np.eye(4)
-    m[:3, :4] = c2w
-    m[:3, 1:3] *= -1
-    return m
-
-
-def _gl_projection(K: np.ndarray, W: int, H: int, near: float = 0.01, far: float = 1000.0) -> np.ndarray:
-    """The OpenGL projection of pinhole intrinsics K [3,3] at W x H (principal point off centre included)."""
-    return np.array([[2 * K[0, 0] / W, 0, 1 - 2 * K[0, 2] / W, 0], [0, 2 * K[1, 1] / H, 2 * K[1, 2] / H - 1, 0],
-                     [0, 0, -(far + near) / (far - near), -2 * far * near / (far - near)], [0, 0, -1, 0]])
 
 
 @pytest.mark.slow

@@ -219,6 +219,19 @@ def fold_plus(arg: str, primary: PrimaryConfig) -> str:
     return arg[1:] if key in primary.keys or key in primary.groups else arg
 
 
+#: sections whose value may be a file alone: ``region=<file>`` is ``region.file=<file>``
+FILE_SHORTHANDS = ("region", "style_image")
+
+
+def expand_file_shorthand(arg: str) -> str:
+    """``region=<file>`` / ``style_image=<file>`` -> ``<section>.file=<file>``, so that the section's other keys can
+    follow on the same command line (``style_image=a.png style_image.lambda_style=2``)."""
+    m = _OVERRIDE.match(arg)
+    if not m or m.group(1) not in ("", "+") or m.group(2) not in FILE_SHORTHANDS or m.group(3).startswith(("{", "null")):
+        return arg
+    return f"{m.group(2)}.file={m.group(3)}"
+
+
 def add_plus(arg: str, primary: PrimaryConfig) -> str:
     """``key=value`` -> ``+key=value`` for a key the composed config does not have (a typo such as
     ``render.num_sampels=3``): Hydra then adds it and the schema refuses it naming the closest valid keys,
@@ -282,4 +295,4 @@ def normalize_overrides(argv: list[str], primary: Optional[PrimaryConfig] = None
     if not any("=" in a and not a.startswith(("++", "-", "~")) for a in argv):
         return argv
     primary = primary if primary is not None else primary_config(argv)
-    return [add_plus(fold_plus(a, primary), primary) for a in argv]
+    return [add_plus(fold_plus(expand_file_shorthand(a), primary), primary) for a in argv]

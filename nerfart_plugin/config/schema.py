@@ -407,6 +407,37 @@ class RegionConfig(Section):
         return any(v is not None for v in (self.file, self.box, self.ellipsoid))
 
 
+def _style_image_file(value: Any) -> Any:
+    """``style_image=<file>``: a picture, the shorthand of ``style_image.file=<file>``."""
+    return {"file": value} if isinstance(value, (str, Path)) else value
+
+
+class StyleImageConfig(Section):
+    """``style_image``: a picture whose style the stylization follows, alone or beside ``prompt`` (ARF's
+    nearest-neighbour feature matching, :mod:`nerfart_plugin.guidance.style_image`). ``+style_image=<file>`` is
+    ``style_image.file=<file>``. The features are the perceptual network's (``guidance.perceptual``: VGG16 with
+    ``guidance=clip``, EfficientNet-Lite0 with ``guidance=imagenet``) at ``layers``."""
+
+    file: Optional[PathText] = Setting(None, description="a PNG or JPEG whose style to follow (any size; 16-bit, "
+                                       "grayscale and RGBA are read; transparency shows white); runs are keyed by "
+                                       "its content, not its path", changes_results=False)
+    lambda_style: Float = Setting(1.0, ge=0.0, le=1e4, description="weight of the nearest-neighbour feature "
+                                  "matching to the picture (ARF's NNFM); 0: off")
+    lambda_palette: Float = Setting(1.0, ge=0.0, le=1e4, description="weight of the pull of the colours toward the "
+                                    "source views recoloured to the picture's palette (histogram matching); 0: off")
+    layers: Union[Literal["auto"], list[str]] = Setting("auto", description="the feature layers matched: VGG16 "
+                                                        "names (relu3_1, ...) or EfficientNet-Lite blocks (block1, "
+                                                        "...); auto: VGG16 relu3_1, relu3_2, relu3_3 (ARF's), Lite0 "
+                                                        "block1, block2")
+    size: Int = Setting(256, ge=32, le=2048, description="long side (pixels) the picture is resized to before its "
+                        "features and palette are taken")
+
+    @property
+    def given(self) -> bool:
+        """A picture is asked for."""
+        return self.file is not None
+
+
 def Component(key: str) -> Any:
     """The annotation of the component section ``key``: its component's typed Config, picked by ``name``."""
     return Annotated[SerializeAsAny[ComponentConfig], BeforeValidator(lambda v: typed_section(key, v))]
@@ -423,7 +454,8 @@ class RunConfig(Section):
     stage: Literal["reconstruct", "stylize", "all", "export", "render", "preview"] = Setting(
         "all", description="which stages to run (preview: a short low-resolution stylization, preview.*)",
         changes_results=False)
-    prompt: Optional[PromptText] = Setting(None, description="the style text; required for stylize/all")
+    prompt: Optional[PromptText] = Setting(None, description="the style text; stylize/all/preview need it or a "
+                                           "style_image")
     source_prompt: PromptText = Setting("auto", description="source text of the directional loss; auto: from "
                                         "the capture type")
     prompt_augment: bool = Setting(True, description="expand known painter/style names to the paper's prompts")
@@ -450,6 +482,8 @@ class RunConfig(Section):
                               "change; outputs named -s<strength>)", changes_results=False)
     mix: MixConfig = Field(default_factory=MixConfig)
     region: Annotated[RegionConfig, BeforeValidator(_region_file)] = Field(default_factory=RegionConfig)
+    style_image: Annotated[StyleImageConfig, BeforeValidator(_style_image_file)] = Field(
+        default_factory=StyleImageConfig)
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
     viewer: ViewerConfig = Field(default_factory=ViewerConfig)
     render: RenderConfig = Field(default_factory=RenderConfig)

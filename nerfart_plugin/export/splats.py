@@ -8,7 +8,8 @@ The conversion is a fit, not a point dump (:func:`fit_splats`):
 2. **Optimization** of every Gaussian's position, scale, rotation, opacity and colour (Adam, the 3DGS rates)
    against the field's renders from many cameras: the capture's training views and an orbit, rendered once at
    ``resolution`` px; each step renders a random share of one view's tiles
-   (:func:`~nerfart_plugin.rendering.splats.rasterize_tiles`) and takes the L1 error.
+   (:func:`~nerfart_plugin.rendering.splats.rasterize_tiles`; with gsplat on CUDA, the whole view) and takes the
+   L1 error.
 3. **Quality**: PSNR and SSIM of the splats against the field on the capture's held-out views.
 
 The file (:func:`write_ply`, with ``plyfile``) holds ``x y z nx ny nz f_dc_0..2 f_rest_0..44 opacity scale_0..2
@@ -162,20 +163,31 @@ def fit_splats(splats: Splats, views: Views, cfg: SplatFit, background: Tensor,
     background = background.to(device)
     curve = []
     means_lr0 = groups[0]["lr"]
+    gsplat = gsplat_available(device)
     for step in tqdm(range(cfg.steps), desc="fitting splats", leave=False):
         v = int(torch.randint(len(views.c2w), (1,), generator=g))
         tiles = torch.randperm(n_tiles, generator=g)[:per_step]
-        out = rasterize_tiles(fitted, views.c2w[v], views.K[v], views.H, views.W, tiles, background)
-        pix = pixels[tiles]
-        valid = pix >= 0
-        want = target[v][pix.clamp_min(0)].to(device)
-        loss = ((out["rgb"] - want).abs() * valid[..., None].to(device)).sum() / (3 * valid.sum().clamp_min(1))
+        loss = _step_loss(fitted, views, v, tiles, pixels, target, background, gsplat)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         groups[0]["lr"] = means_lr0 * (0.01 ** (step / max(1, cfg.steps - 1)))  # 3DGS: the positions' rate decays
         curve.append(float(loss.detach()))
     return fitted.detach(), curve
+
+
+def _step_loss(splats: Splats, views: Views, v: int, tiles: Tensor, pixels: Tensor, target: Tensor,
+               background: Tensor, gsplat: bool) -> Tensor:
+    """The L1 error of one step: gsplat renders view ``v`` whole; the PyTorch rasterizer only ``tiles``."""
+    device = splats.means.device
+    if gsplat:
+        img = rasterize_gsplat(splats, views.c2w[v], views.K[v], views.H, views.W, background)["rgb"]
+        return (img.reshape(-1, 3) - target[v].to(device)).abs().mean()
+    out = rasterize_tiles(splats, views.c2w[v], views.K[v], views.H, views.W, tiles, background)
+    pix = pixels[tiles]
+    valid = (pix >= 0).to(device)
+    want = target[v][pix.clamp_min(0)].to(device)
+    return ((out["rgb"] - want).abs() * valid[..., None]).sum() / (3 * valid.sum().clamp_min(1))
 
 
 @torch.no_grad()
@@ -238,29 +250,49 @@ def read_ply(path: Path) -> Splats:
 def export_splats(run: Any, path: Path, cfg: SplatFit, frame: str = "world") -> dict[str, Any]:
     """Fit ``run``'s field (any Run: a blend, a region) as splats and write them to ``path``: what was fitted and
     how well (PSNR / SSIM against the field on the capture's held-out views), for ``metrics.json``."""
-    t0 = time.perf_counter()
+    clock = _Clock()
     torch.manual_seed(cfg.seed)
     field_ = run.renderer.field
-    splats = initial_splats(field_, cfg.count, cfg.seed)
+    splats = clock("initialization", initial_splats, field_, cfg.count, cfg.seed)
     ids = run.cameras.train_ids or list(range(len(run.cameras.c2w)))
     held = [i for i in range(len(run.cameras.c2w)) if i not in set(ids)] or ids[:4]
-    views = field_views(run, ids, cfg.orbit_views, cfg.resolution)
-    background = _background(run)
-    start = splat_quality(splats, field_views(run, held, 0, cfg.resolution), background)
-    fitted, curve = fit_splats(splats, views, cfg, background, torch.device("cpu"))
-    quality = splat_quality(fitted, field_views(run, held, 0, cfg.resolution), background)
-    out = to_world(fitted, run.cameras.normalization) if frame == "world" else fitted
+    views = clock("field renders", field_views, run, ids, cfg.orbit_views, cfg.resolution)
+    held_views = clock("field renders", field_views, run, held, 0, cfg.resolution)
+    background = field_background(run)
+    start = clock("quality", splat_quality, splats, held_views, background)
+    fitted, curve = clock("fit", fit_splats, splats, views, cfg, background, torch.device(run.device))
+    quality = clock("quality", splat_quality, fitted, held_views, background)
+    out = to_world(fitted.to("cpu"), run.cameras.normalization) if frame == "world" else fitted.to("cpu")
     write_ply(out, path)
-    seconds = time.perf_counter() - t0
+    seconds = clock.total()
     log.info("splats: %d Gaussians fitted in %d steps (%.0f s): %.2f dB / SSIM %.3f against the field on %d "
              "held-out views (%.2f dB at the surface initialization) -> %s", len(fitted), cfg.steps, seconds,
              quality["psnr"], quality["ssim"], quality["views"], start["psnr"], path)
     return {"file": str(path), "gaussians": len(fitted), "steps": cfg.steps, "resolution": cfg.resolution,
             "frame": frame, "psnr": quality["psnr"], "ssim": quality["ssim"], "psnr_initial": start["psnr"],
-            "views": quality["views"], "seconds": round(seconds, 1), "bytes": Path(path).stat().st_size,
-            "final_loss": curve[-1] if curve else None}
+            "ssim_initial": start["ssim"], "views": quality["views"], "seconds": round(seconds, 1),
+            "seconds_by_part": {k: round(v, 1) for k, v in clock.parts.items()},
+            "bytes": Path(path).stat().st_size, "final_loss": curve[-1] if curve else None}
 
 
-def _background(run: Any) -> Tensor:
+class _Clock:
+    """Seconds spent per named part of a job."""
+
+    def __init__(self) -> None:
+        self.parts: dict[str, float] = {}
+        self.t0 = time.perf_counter()
+
+    def __call__(self, part: str, fn: Any, *args: Any) -> Any:
+        t = time.perf_counter()
+        out = fn(*args)
+        self.parts[part] = self.parts.get(part, 0.0) + time.perf_counter() - t
+        return out
+
+    def total(self) -> float:
+        return time.perf_counter() - self.t0
+
+
+def field_background(run: Any) -> Tensor:
+    """[3] the colour behind the field's renders (white when it has none)."""
     colour = run.renderer.background_color
     return torch.ones(3) if colour is None else torch.as_tensor(colour, dtype=torch.float32).reshape(3)

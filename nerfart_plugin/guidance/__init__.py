@@ -66,11 +66,21 @@ def build_guidance(cfg: Any) -> Guidance:
     return cls(g, policy=WeightsPolicy(g.allow_random_weights, g.allow_download))
 
 
-def build_perceptual(cfg: Any) -> nn.Module:
+def perceptual_section(cfg: Any) -> Any:
+    """The typed ``guidance.perceptual`` section of the ``guidance`` section ``cfg``: as given, else the guide's
+    ``default_perceptual``."""
+    g = typed_section("guidance", cfg)
+    return g.perceptual or typed_section("guidance.perceptual", registry.get("guidance", g.name).default_perceptual)
+
+
+def build_perceptual(cfg: Any, **update: Any) -> nn.Module:
     """The feature network of Eq. 9 (registry kind ``perceptual``: ``vgg`` :class:`Perceptual`, ``edges``
     :class:`EdgePerceptual`, ``imagenet`` Lite0's first stages): ``guidance.perceptual``, else the guide's
-    ``default_perceptual``. Each exposes ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
+    ``default_perceptual``, with the settings ``update`` (the style picture's layers). Each exposes
+    ``features(img [B,3,H,W] in [0,1]) -> list[Tensor]`` and ``is_real``."""
     g = typed_section("guidance", cfg)
-    p = g.perceptual or typed_section("guidance.perceptual", registry.get("guidance", g.name).default_perceptual)
+    p = perceptual_section(g)
+    if update:
+        p = typed_section("guidance.perceptual", {**p.model_dump(mode="json"), **update})
     cls = registry.get("perceptual", p.name)
     return cls(p, policy=WeightsPolicy(g.allow_random_weights, g.allow_download))

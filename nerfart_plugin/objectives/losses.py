@@ -242,3 +242,52 @@ def psnr(rgb: Tensor, target: Tensor, mask: Tensor | None = None, max_val: float
     """
     mse = reconstruction_loss(rgb.detach(), target.detach(), None if mask is None else mask.detach())
     return 10.0 * torch.log10(max_val**2 / mse.clamp_min(1e-10))
+
+
+def nnfm_loss(feats: Sequence[Tensor], style_feats: Sequence[Tensor], mask: Tensor | None = None) -> Tensor:
+    """ARF's nearest-neighbour feature matching (Zhang et al., *ARF*, ECCV 2022): each rendered feature vector's
+    cosine distance to its nearest feature vector of the style picture, averaged over the view, then over layers.
+
+    Args:
+        feats: per-layer features of the rendered view, ``[1, C_l, H_l, W_l]``.
+        style_feats: the style picture's features at the same layers, ``[1, C_l, h_l, w_l]`` (any size).
+        mask: optional ``[H, W]`` weights in [0, 1] of the view's pixels (the subject): each layer's locations
+            are weighted by its area-average; an all-zero mask gives 0.
+    Returns: 0-dim tensor in [0, 2].
+    """
+    if len(feats) != len(style_feats) or len(feats) == 0:
+        raise ValueError(f"nnfm_loss needs equally many (>0) layers, got {len(feats)} and {len(style_feats)}")
+    loss = feats[0].new_zeros(())
+    for f, s in zip(feats, style_feats):
+        if f.dim() != 4 or s.dim() != 4 or f.shape[0] != 1 or s.shape[:2] != f.shape[:2]:
+            raise ValueError(f"nnfm_loss: features [1,C,H,W] with equal C, got {tuple(f.shape)} and {tuple(s.shape)}")
+        a = F.normalize(f[0].flatten(1).T.float(), dim=-1)  # [HW, C]
+        b = F.normalize(s[0].flatten(1).T.float(), dim=-1)  # [hw, C]
+        nearest = (1.0 - a @ b.T).min(dim=1).values  # [HW]
+        if mask is None:
+            loss = loss + nearest.mean()
+            continue
+        w = F.adaptive_avg_pool2d(mask.float()[None, None], f.shape[-2:]).flatten()
+        loss = loss + (nearest * w).sum() / w.sum().clamp_min(1e-8)
+    return loss / len(feats)
+
+
+def gram_matrix(feats: Tensor, mask: Tensor | None = None) -> Tensor:
+    """The Gram matrix ``[C, C]`` of features ``[1, C, H, W]`` (Gatys et al.): the mean over locations of the outer
+    products of the feature vectors; ``mask`` ``[H, W]`` weights the locations as in :func:`nnfm_loss`."""
+    if feats.dim() != 4 or feats.shape[0] != 1:
+        raise ValueError(f"gram_matrix: features [1,C,H,W], got {tuple(feats.shape)}")
+    x = feats[0].flatten(1).float()  # [C, HW]
+    if mask is None:
+        return x @ x.T / x.shape[1]
+    w = F.adaptive_avg_pool2d(mask.float()[None, None], feats.shape[-2:]).flatten()
+    return (x * w) @ x.T / w.sum().clamp_min(1e-8)
+
+
+def colour_loss(img: Tensor, target: Tensor, cell: int = 4) -> Tensor:
+    """The mean squared difference of two images' local colours: their means over ``cell`` x ``cell`` pixel cells
+    (``img``, ``target`` ``[B, 3, H, W]``), so the palette is pulled toward ``target`` and not the detail."""
+    if img.shape != target.shape or img.dim() != 4:
+        raise ValueError(f"colour_loss expects two images [B,3,H,W] of one shape, got {tuple(img.shape)} and "
+                         f"{tuple(target.shape)}")
+    return F.mse_loss(F.avg_pool2d(img, cell, ceil_mode=True), F.avg_pool2d(target, cell, ceil_mode=True))

@@ -55,6 +55,9 @@ class Splats:
     def detach(self) -> "Splats":
         return Splats(*(t.detach().clone() for t in self.parameters()))
 
+    def to(self, device: torch.device | str) -> "Splats":
+        return Splats(*(t.to(device) for t in self.parameters()))
+
     def rgb(self) -> Tensor:
         """[N,3] colours in [0, 1]."""
         return (0.5 + C0 * self.colours).clamp(0.0, 1.0)

@@ -61,7 +61,8 @@ def stylization_keys(scene: Any, style: Any, source_keys: dict[int, str], styliz
     """Settings format -> the stylization's key: its source (``source_keys``: the reconstruction's keys or the
     checkpoint's), the prompts, the guidance, the loss weights, the ``stylize`` settings (``stylize``: the section
     as keyed before the negatives' threshold was resolved, so existing runs keep their keys), trainer and seed,
-    and the region's content when the stylization is inside one."""
+    the region's content when the stylization is inside one, and the style picture's content and settings when
+    there is one (not its path: a copy elsewhere is the same style)."""
     c = scene.cfg
     region = region_from_config(c.region)
     out = {}
@@ -71,5 +72,7 @@ def stylization_keys(scene: Any, style: Any, source_keys: dict[int, str], styliz
                 "stylize": result_settings(stylize), "trainer": result_settings(c.trainer), "seed": c.seed}
         if region is not None:  # inside a region: its content and the grid it is sampled on
             body["region"] = {"content": region.content_hash, "resolution": c.region.resolution}
+        if style.image is not None:  # a style picture: its content and how it is matched
+            body["style_image"] = {**result_settings(c.style_image), "content": style.image.content_hash}
         out[fmt] = _hashed(body, fmt)
     return out

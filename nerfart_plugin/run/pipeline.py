@@ -32,6 +32,7 @@ from nerfart_plugin.config.validate import parse_config
 from nerfart_plugin.errors import ConfigError, NerfArtError, RunInterrupted
 from nerfart_plugin.guidance import validate_prompt
 from nerfart_plugin.guidance.style import Style, build_style, check_style
+from nerfart_plugin.guidance.style_image import read_style_image
 from nerfart_plugin.run.factories import SceneContext, build_scene
 from nerfart_plugin.run.stages.base import LiveViewerFactory
 from nerfart_plugin.run.stages.export import ExportStage
@@ -58,11 +59,13 @@ def check_stage(c: RunConfig) -> None:
                           "stage=stylize with trainer.strategy=auto trainer.devices=1 trainer.num_nodes=1 "
                           "source_checkpoint=<the DDP run>/final.ckpt.")
     if plan.needs_prompt:
-
-        if c.prompt is None:
-            raise ConfigError(f"stage={c.stage} needs a style prompt: add +prompt=\"Vincent van Gogh\" "
-                              "(or stage=reconstruct).")
-        validate_prompt(c.prompt)
+        if c.prompt is None and not c.style_image.given:
+            raise ConfigError(f"stage={c.stage} needs a style: add +prompt=\"Vincent van Gogh\" or "
+                              "+style_image=<picture.png> (or both; or stage=reconstruct).")
+        if c.prompt is not None:
+            validate_prompt(c.prompt)
+        if c.style_image.given:
+            read_style_image(c.style_image.file)  # a bad picture stops the run before any work
     if c.source_checkpoint and not Path(c.source_checkpoint).expanduser().is_file():
         raise ConfigError(f"source_checkpoint={c.source_checkpoint}: no such file. Point it at the final.ckpt of a "
                           "reconstruction (outputs/reconstructions/<run>/final.ckpt) or leave it out to use the "
@@ -163,7 +166,7 @@ class Pipeline:
         self.results["export"] = ExportStage(self.cfg, ckpt, self._loaded()).run().summary
 
     def render(self) -> None:
-        """``stage=render``: videos of ``render.run``, else of this config's finished stylization (with a prompt)
+        """``stage=render``: videos of ``render.run``, else of this config's finished stylization (with a style)
         or reconstruction."""
         if self.cfg.mix.runs:
             run_dir = None
@@ -172,8 +175,8 @@ class Pipeline:
         self.results["render"] = RenderStage(self.cfg, run_dir).run().summary
 
     def finished_run_dir(self) -> Path:
-        """The finished stylization (with a prompt) or reconstruction of this config, for ``stage=render``."""
-        if self.cfg.prompt is None:
+        """The finished stylization (with a style) or reconstruction of this config, for ``stage=render``."""
+        if not _styled(self.cfg):
             folder, what = self.recon.folder, "reconstruction"
         else:
             source, source_keys = stylization_source(self._loaded(), self.recon)
@@ -234,6 +237,11 @@ def _runs_given(c: RunConfig) -> bool:
     return bool(c.render.run or c.mix.runs)
 
 
+def _styled(c: RunConfig) -> bool:
+    """A style is given (a prompt, a style picture or both): the config names a stylization."""
+    return c.prompt is not None or c.style_image.given
+
+
 @dataclass(frozen=True)
 class StagePlan:
     """What one value of ``stage=`` does: whether the guide (prompt, negatives) and the capture are loaded first
@@ -258,7 +266,7 @@ PLANS: dict[str, StagePlan] = {
     "all": StagePlan((Pipeline.reconstruct_unless_given, Pipeline.stylize), guidance=_always, needs_prompt=True),
     "preview": StagePlan((Pipeline.reconstruct_unless_given, Pipeline.preview), guidance=_always, needs_prompt=True),
     # a given run (render.run, mix.runs) needs neither data nor guide; else this config's run, found by its key
-    "render": StagePlan((Pipeline.render,), guidance=lambda c: c.prompt is not None and not _runs_given(c),
+    "render": StagePlan((Pipeline.render,), guidance=lambda c: _styled(c) and not _runs_given(c),
                         data=lambda c: not _runs_given(c)),
     "export": StagePlan((Pipeline.export_meshes,), data=lambda c: not c.mix.runs),
 }

@@ -1,4 +1,4 @@
-"""Stage 2: stylize a reconstructed NeRF toward a text prompt (NeRF-Art Sections 4.1-4.4).
+"""Stage 2: stylize a reconstructed NeRF toward a text prompt (NeRF-Art Sections 4.1-4.4), a style picture, or both.
 
 Loss, Eq. 8:  L = λd·L_dir^r + λg·L_con^g + λl·L_con^l + λp·L_per + λr·L_reg
   * L_dir^r  Eq. 4, relative directional CLIP loss against the frozen source render
@@ -9,6 +9,10 @@ Loss, Eq. 8:  L = λd·L_dir^r + λg·L_con^g + λl·L_con^l + λp·L_per + λr�
              official release: 112 px on 270x480), centred on the subject (the source render's opacity);
   * L_per    Eq. 9, VGG16 perceptual distance to the source render;
   * L_reg    Eq. 7, Σ_ij w_i w_j |d_i − d_j| on ray weights (suppresses cloudy geometry).
+With a style picture (``style_image``) two terms join them, after ARF (Zhang et al. 2022):
+  * L_style  nearest-neighbour feature matching of the view's features (the subject's pixels) to the picture's;
+  * L_pal    the view's local colours pulled toward the source view recoloured to the picture's palette;
+the text terms drop out when no prompt is given; L_per (to the source) keeps the subject recognisable.
 Each term is one row of :data:`~nerfart_plugin.systems.stylization_losses.STYLIZATION_IMAGE_LOSSES` (on the rendered
 view) or :data:`~nerfart_plugin.systems.stylization_losses.STYLIZATION_RAY_LOSSES` (per ray, with grad), weighted by ``experiment.lambda_<name>``.
 Each step renders one view without grad, takes dL/dI, and back-propagates it
@@ -49,14 +53,15 @@ from nerfart_plugin.fields.composite import CompositeField, RegionMask
 from nerfart_plugin.rendering import VolumeRenderer
 from nerfart_plugin.guidance.patches import subject_box
 from nerfart_plugin.guidance.style import Style, negatives_of
+from nerfart_plugin.guidance.style_image import match_palette
 from nerfart_plugin.rendering.two_pass import (backprop_patches, backprop_retained, render_fixed_samples,
     render_with_graph)
 from nerfart_plugin.systems.base import RenderSystem, adam, build_renderer, param_groups, step_seed
 from nerfart_plugin.systems.callbacks import check_finite_grads
 from nerfart_plugin.systems.loggers import log_images
 from nerfart_plugin.systems.loss_terms import compute, regularizer_weights, weighted_sum, weights_of
-from nerfart_plugin.systems.stylization_losses import (STYLIZATION_IMAGE_LOSSES, STYLIZATION_RAY_LOSSES, ImageInputs,
-    regularizer_term)
+from nerfart_plugin.systems.stylization_losses import (STYLE_IMAGE_LOSSES, STYLIZATION_IMAGE_LOSSES,
+    STYLIZATION_RAY_LOSSES, ImageInputs, regularizer_term)
 from nerfart_plugin.utils.device import to_device
 from nerfart_plugin.utils.images import image_grid, save_image, to_uint8
 
@@ -134,7 +139,9 @@ class StylizationSystem(RenderSystem):
             log.info("stylize.num_samples=%d ignored: no occupancy grid places the samples, so the stylization "
                      "keeps render.num_samples=%d", self.cfg.num_samples, self.renderer.num_samples)
         # Frozen helpers live outside the module tree: not trained, not checkpointed.
-        self._frozen = {"source": source, "guidance": style.guidance, "perceptual": style.perceptual}
+        self._frozen = {"source": source, "guidance": style.guidance, "perceptual": style.perceptual,
+                        "style_features": style.features}
+        self.style_image = style.image
         if region is not None:  # what renders: the composite, on the stylized renderer's own occupancy grid
             composite = CompositeField(source.field, [(self.renderer.field, 1.0, region)])
             self._frozen["view"] = self.renderer.with_field(composite, share_occupancy=True)
@@ -160,6 +167,7 @@ class StylizationSystem(RenderSystem):
         self.tgt_txt: Optional[Tensor] = None
         self.src_txt: Optional[Tensor] = None
         self.neg_sampler: Optional[NegativeSampler] = None
+        self.style_feats: list[Tensor] = []
         self._cache: dict[int, dict[str, Any]] = {}
         self.timings: dict[str, float] = {}
 
@@ -179,7 +187,10 @@ class StylizationSystem(RenderSystem):
     def _init_loss_weights(self) -> None:
         geometry_off = [t.name for t in STYLIZATION_RAY_LOSSES if t.geometry] if self.freeze_geometry else []
         local_off = ["local"] if self.cfg.local_patches == 0 else []  # no local patches, no local term
-        self.lambdas = {**weights_of(STYLIZATION_IMAGE_LOSSES, self.exp, off=local_off),
+        text_off = [] if self.prompt is not None else ["dir", "global", "local"]  # a picture alone
+        picture_off = [] if self.style_image is not None else [t.name for t in STYLE_IMAGE_LOSSES]
+        self.lambdas = {**weights_of(STYLIZATION_IMAGE_LOSSES, self.exp, off=local_off + text_off),
+                        **weights_of(STYLE_IMAGE_LOSSES, self.run_cfg.style_image, off=picture_off),
                         **weights_of(STYLIZATION_RAY_LOSSES, self.exp, off=geometry_off)}
         self.reg_lambdas = regularizer_weights(self.field.regularizer_names, self.exp, off=self.freeze_geometry)
 
@@ -196,7 +207,13 @@ class StylizationSystem(RenderSystem):
 
     @property
     def guidance(self):
+        """The text guide (None for a style picture alone)."""
         return self._frozen["guidance"]
+
+    @property
+    def style_features(self):
+        """The network whose features are matched to the style picture (None without one)."""
+        return self._frozen["style_features"]
 
     @property
     def perceptual(self):
@@ -212,15 +229,21 @@ class StylizationSystem(RenderSystem):
 
     @torch.no_grad()
     def prepare_text(self) -> None:
-        """Move the frozen parts to the device; the target / source text embeddings and the negatives."""
+        """Move the frozen parts to the device; the style picture's features; the target / source text
+        embeddings and the negatives."""
         for m in self._frozen.values():
-            m.to(self.device)
+            if m is not None:
+                m.to(self.device)
+        if self.style_image is not None:
+            self.style_feats = [f.detach() for f in self.style_features.features(self.style_image.image[None].to(self.device))]
+        self.neg_sampler = None
+        if self.prompt is None:
+            return
         g = self.guidance
         self.tgt_txt = g.encode_text([self.prompt])[0]
         ids = np.linspace(0, len(self.views) - 1, min(8, len(self.views))).round().astype(int).tolist()
         src_imgs = torch.cat([self.source_view(i)["img"] for i in dict.fromkeys(ids)])
         self.src_txt = g.source_embedding(self.source_prompt, src_imgs)
-        self.neg_sampler = None
         if self.contrastive:
             threshold = self.cfg.negative_threshold
             self.neg_sampler = NegativeSampler(g, self.negatives, self.prompt,
@@ -236,16 +259,21 @@ class StylizationSystem(RenderSystem):
 
     @torch.no_grad()
     def source_view(self, i: int) -> dict[str, Any]:
-        """Cached I_src of view ``i`` ([1,3,H,W]), its guidance embedding, perceptual features and the
-        subject's bounding box (source opacity > 0.5; None if the view shows nothing)."""
+        """Cached I_src of view ``i`` ([1,3,H,W]), its guidance embedding (with a prompt), perceptual features,
+        the subject's bounding box (source opacity > 0.5; None if the view shows nothing) and, with a style
+        picture, the subject's mask [H,W] and the view recoloured to the picture's palette [1,3,H,W]."""
         if i not in self._cache:
             v = self.views[i]
             out = self.source.render_chunked(to_device(v, self.device), chunk=self.cfg.chunk, with_normals=False)
             img = out["rgb"].reshape(v["H"], v["W"], 3).permute(2, 0, 1)[None].clamp(0, 1)
-            entry = {"img": img, "emb": self.guidance.encode_image(img), "opacity": out["opacity"],
-                     "box": self._patch_box(v, out)}
+            entry = {"img": img, "opacity": out["opacity"], "box": self._patch_box(v, out),
+                     "mask": out["opacity"].reshape(v["H"], v["W"]).float()}
+            if self.guidance is not None:
+                entry["emb"] = self.guidance.encode_image(img)
             if self.lambdas["perceptual"] > 0:
                 entry["feats"] = [f.detach() for f in self.perceptual.features(img)]
+            if self.lambdas["palette"] > 0:
+                entry["palette"] = match_palette(img[0], self.style_image.image, entry["mask"] > 0.5)[None]
             self._cache[i] = entry
         return self._cache[i]
 
@@ -286,8 +314,10 @@ class StylizationSystem(RenderSystem):
         return x
 
     def image_losses(self, img: Tensor, src: dict[str, Any], g: torch.Generator) -> dict[str, Tensor]:
-        """The image terms of Eq. 8 for the rendered view ``img`` [1,3,H,W] (λ=0 terms skipped)."""
-        return compute(STYLIZATION_IMAGE_LOSSES, self.lambdas, self, self.image_inputs(img, src, g))
+        """The image terms of Eq. 8 and the style picture's for the rendered view ``img`` [1,3,H,W] (λ=0 terms
+        skipped)."""
+        return compute(STYLIZATION_IMAGE_LOSSES + STYLE_IMAGE_LOSSES, self.lambdas, self,
+                       self.image_inputs(img, src, g))
 
     def ray_losses(self) -> dict[str, tuple[float, Any]]:
         """``name -> (λ, fn(render_out, rays))`` of the per-ray terms and the field's regularizers."""

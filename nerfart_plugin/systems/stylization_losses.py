@@ -1,5 +1,5 @@
-"""Eq. 8's terms as declarative tables: the image terms on the rendered view and the per-ray terms on each
-re-rendered patch (:class:`~nerfart_plugin.systems.stylization.StylizationSystem` weights and sums them).
+"""Eq. 8's terms as declarative tables: the image terms on the rendered view (with the style picture's, ARF's),
+and the per-ray terms on each re-rendered patch (:class:`~nerfart_plugin.systems.stylization.StylizationSystem` weights and sums them).
 
 Each ``fn`` of an image term takes ``(system, ImageInputs)``: the system gives the text embeddings
 (``tgt_txt``, ``src_txt``), the settings (``cfg.tau``, ``exp.directional``) and the perceptual network.
@@ -12,8 +12,8 @@ from typing import Any, Optional
 
 from torch import Tensor
 
-from nerfart_plugin.objectives.losses import (absolute_clip_loss, contrastive_loss, directional_clip_loss,
-    perceptual_loss, silhouette_loss, weight_regularization)
+from nerfart_plugin.objectives.losses import (absolute_clip_loss, colour_loss, contrastive_loss,
+    directional_clip_loss, nnfm_loss, perceptual_loss, silhouette_loss, weight_regularization)
 from nerfart_plugin.systems.loss_terms import LossTerm
 
 
@@ -51,6 +51,14 @@ STYLIZATION_IMAGE_LOSSES: tuple[LossTerm, ...] = (
              doc="Eq. 5-6 on local patches (stylize.local_patches of stylize.local_patch_frac of the area)"),
     LossTerm("perceptual", lambda s, x: perceptual_loss(s.perceptual.features(x.img), x.src["feats"]),
              doc="Eq. 9: perceptual distance to the source render"),
+)
+
+#: The style picture's terms (``style_image.lambda_<name>``), on the rendered view like Eq. 8's image terms.
+STYLE_IMAGE_LOSSES: tuple[LossTerm, ...] = (
+    LossTerm("style", lambda s, x: nnfm_loss(s.style_features.features(x.img), s.style_feats, mask=x.src["mask"]),
+             doc="ARF's nearest-neighbour feature matching to the style picture, on the subject's pixels"),
+    LossTerm("palette", lambda s, x: colour_loss(x.img, x.src["palette"]),
+             doc="the local colours pulled toward the source view recoloured to the picture's palette"),
 )
 
 #: The per-ray terms, computed with grad on each re-rendered patch; the field's regularizers join them.

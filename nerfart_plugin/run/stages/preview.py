@@ -45,7 +45,8 @@ class PreviewStage(StylizeStage):
         rows = [side_by_side(a.permute(1, 2, 0), b.permute(1, 2, 0), labels=("source", f"preview, {fit.steps} steps"))
                 for a, b in zip(src, sty)]
         save_image(image_grid(rows, ncols=1), self.folder.path / "preview.png")
-        metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "steps": fit.steps,
+        metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "style": self.style.name,
+                        "steps": fit.steps,
                         "resolution": self.settings.resolution, "train_seconds_this_process": fit.seconds,
                         "source_checkpoint": str(Path(self.source).resolve()), "stamp": self.style.stamp or None})
         log_preview(self.folder.path, metrics)
@@ -80,14 +81,19 @@ def log_preview(folder: Path, metrics: dict[str, Any]) -> None:
     direction = metrics.get("clip_directional_similarity")
     guide = "" if direction is None else f"the guide's directional similarity {direction:.3f} (higher: a stronger " \
                                          "full run, to compare prompts by); "
+    picture = metrics.get("style_image") or {}
+    if "nnfm_stylized" in picture:
+        guide += (f"distance to the style picture (the judge's features; lower: closer) {picture['nnfm_source']:.3f} "
+                  f"-> {picture['nnfm_stylized']:.3f}, colours {picture['colour_emd_source']:.1f} -> "
+                  f"{picture['colour_emd_stylized']:.1f}; ")
     judge = metrics.get("judge") or {}
     if "stylized" in judge:
         log.info("preview of %r: %sthe judge's P(%s) %.4f -> %.4f, top-5 on %.0f%% -> %.0f%% of the held-out "
-                 "views; see %s", metrics.get("prompt"), guide, judge["target_class"],
+                 "views; see %s", metrics.get("style") or metrics.get("prompt"), guide, judge["target_class"],
                  judge["source"]["mean_target_prob"], judge["stylized"]["mean_target_prob"],
                  100 * judge["source"]["top5_rate"], 100 * judge["stylized"]["top5_rate"], folder / "preview.png")
     else:
-        log.info("preview of %r: %sjudge: %s; see %s", metrics.get("prompt"), guide, judge.get("skipped", "none"),
+        log.info("preview of %r: %sjudge: %s; see %s", metrics.get("style") or metrics.get("prompt"), guide, judge.get("skipped", "none"),
                  folder / "preview.png")
 
 

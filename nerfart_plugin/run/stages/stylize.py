@@ -1,4 +1,5 @@
-"""``stage=stylize``: the text-driven fine-tuning into ``stylizations/<prompt>-<backbone>-<key><stamp>/``
+"""``stage=stylize``: the fine-tuning toward a prompt and/or a style picture into
+``stylizations/<style>-<backbone>-<key><stamp>/``
 (``final.ckpt``, ``heldout/``, ``video<stamp>.mp4``, ``mesh/``, ``metrics.json``)."""
 
 from __future__ import annotations
@@ -18,8 +19,8 @@ from nerfart_plugin.export.compare import compare_meshes, displacement_mesh, ver
 from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, write_in_frame
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.guidance.style import Style, style_choices
-from nerfart_plugin.objectives.evaluation import (region_metrics, clip_scores, edge_similarity, evaluation_views, judge_prompt,
-    lost_subject, off_surface_share, silhouette_iou, view_consistency)
+from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
+    lost_subject, off_surface_share, region_metrics, silhouette_iou, style_image_metrics, view_consistency)
 from nerfart_plugin.rendering.frames import render_cameras
 from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
 from nerfart_plugin.run.fit import FitResult, fit_stage
@@ -61,7 +62,7 @@ class StylizeStage(TrainingStage):
         self.settings = stylize_settings(scene, style)
         self.region = region_from_config(c.region)
         self.keys = stylization_keys(scene, style, source_keys, stylize_settings(scene))
-        self.names = [f"{slug(style.raw_prompt)}-{c.backbone.name}-{key}{style.stamp}" for key in self.keys.values()]
+        self.names = [f"{slug(style.name)}-{c.backbone.name}-{key}{style.stamp}" for key in self.keys.values()]
         self.folder = RunFolder.find(scene.root / "stylizations", self.names, "stylization")
         self.source_state: Optional[dict] = None
         self.heldout_views: Optional[tuple[list[int], torch.Tensor, torch.Tensor]] = None  # (ids, source, stylized)
@@ -95,6 +96,7 @@ class StylizeStage(TrainingStage):
             with self.clock.part("meshes"):
                 metrics.update(self.compare_meshes(system))
         metrics.update({"prompt": st.raw_prompt, "prompt_used": st.prompt, "source_prompt": st.source_prompt,
+                        "style": st.name,
                         "guidance": c.guidance.name, "guidance_is_real": st.real, "stamp": st.stamp or None,
                         "experiment": c.experiment.model_dump(mode="json"), "steps": fit.steps,
                         "train_seconds_this_process": fit.seconds, "last_step_timings_s": system.timings,
@@ -111,7 +113,7 @@ class StylizeStage(TrainingStage):
         return {k: v for k, v in metrics.items() if k.startswith(("clip_", "view_", "mesh_"))}
 
     def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
-        return {**super().auto_choices(system, fit), **style_choices(self.style, self.settings)}
+        return {**super().auto_choices(system, fit), **style_choices(self.style, self.settings, self.scene.cfg)}
 
     @torch.no_grad()
     def heldout_metrics(self, system: Any) -> dict[str, Any]:
@@ -126,20 +128,26 @@ class StylizeStage(TrainingStage):
         src_out = [system.render_batch(v, source=True) for v in views]
         sty = torch.stack([o["rgb"].permute(2, 0, 1) for o in sty_out]).clamp(0, 1)
         src = torch.stack([o["rgb"].permute(2, 0, 1) for o in src_out]).clamp(0, 1)
-        metrics: dict[str, Any] = clip_scores(system.guidance, sty, src, system.tgt_txt, system.src_txt)
+        metrics: dict[str, Any] = {}
+        if self.style.text:
+            metrics.update(clip_scores(system.guidance, sty, src, system.tgt_txt, system.src_txt))
+        if self.style.image is not None:
+            metrics["style_image"] = {"file": str(self.style.image.file), "content": self.style.image.content_hash,
+                                      **style_image_metrics(self.style.image.image.to(sty.device), src, sty,
+                                                            _opacities(src_out), _opacities(sty_out))}
         metrics["mean_rgb"] = [float(x) for x in sty.mean((0, 2, 3))]
         metrics["mean_rgb_source"] = [float(x) for x in src.mean((0, 2, 3))]
         metrics["edge_similarity"] = edge_similarity(sty, src)
-        metrics["silhouette_iou"] = silhouette_iou(torch.stack([o["opacity"][..., 0] for o in src_out]),
-                                                   torch.stack([o["opacity"][..., 0] for o in sty_out]))
+        metrics["silhouette_iou"] = silhouette_iou(_opacities(src_out), _opacities(sty_out))
         self.save_heldout(ids, src, sty)
         self.heldout_views = (ids, src, sty)  # what a preview shows, without reading the PNGs back
         if self.region is not None:  # outside: the rays clear of the region and of the occupancy cells it reaches
             grid = system.view.occupancy
             reach = OUTSIDE_CELLS * grid.cell_size if grid is not None else 0.0
-            metrics["region"] = region_metrics(self.style.raw_prompt, system.view.field.regions[0].grown(reach), views,
+            metrics["region"] = region_metrics(self.style.raw_prompt or "", system.view.field.regions[0].grown(reach), views,
                                                src, sty, ids)
-        metrics["judge"] = judge_prompt(self.style.raw_prompt, src, sty, ids)
+        metrics["judge"] = (judge_prompt(self.style.raw_prompt, src, sty, ids) if self.style.text
+                            else {"skipped": "no prompt: a style picture alone (see style_image)"})
         metrics["evaluated_on"] = evaluation_views(scene)
 
         dev = self.scene.device
@@ -208,3 +216,8 @@ def stylization_source(scene: SceneContext, recon: Optional[ReconstructStage]) -
         return Path(src), checkpoint_keys(scene, Path(src))
     assert recon is not None
     return recon.folder.final, recon.keys
+
+
+def _opacities(outs: list[dict[str, torch.Tensor]]) -> torch.Tensor:
+    """[B,H,W] the opacity images of renders (dicts with ``opacity`` [H,W,1])."""
+    return torch.stack([o["opacity"][..., 0] for o in outs])
