@@ -123,7 +123,7 @@ def picture(run: Any, ply: Path, clients: Path | None, view: int, resolution: in
 
     from nerfart_plugin.export.splats import read_ply
     from nerfart_plugin.rendering.splats import rasterize
-    from nerfart_plugin.utils.images import label_image, save_image, side_by_side
+    from nerfart_plugin.utils.images import label_image, save_image, side_by_side, to_uint8
     from nerfart_plugin.viewer.browser import missing_browser
 
     cams = run.cameras
@@ -134,14 +134,14 @@ def picture(run: Any, ply: Path, clients: Path | None, view: int, resolution: in
     field_img = run.render(view, resolution)["rgb"]
     ours = rasterize(read_ply(ply), torch.tensor(c2w, dtype=torch.float32), torch.tensor(K, dtype=torch.float32),
                      H, W)["rgb"].clamp(0, 1)
-    tiles = [label_image(field_img, "field"), label_image(ours, "splats (ours)")]
+    tiles = [label_image(to_uint8(field_img), "field"), label_image(to_uint8(ours), "splats (ours)")]
     out: dict[str, Any] = {"view": view, "resolution": [W, H]}
     if clients is not None and not missing_browser():
         spark = spark_screenshot(clients, ply, c2w, K, W, H)
         a, b = ours.numpy().sum(-1) < 2.9, spark.sum(-1) < 2.9
         out["spark_iou"] = float((a & b).sum() / max(1, (a | b).sum()))
         out["spark_psnr"] = float(-10 * np.log10(((ours.numpy() - spark) ** 2).mean()))
-        tiles.append(label_image(torch.as_tensor(spark, dtype=torch.float32), "Spark (three.js) in Chromium"))
+        tiles.append(label_image(to_uint8(spark), "Spark (three.js) in Chromium"))
     row = tiles[0]
     for tile in tiles[1:]:
         row = side_by_side(row, tile, labels=None)

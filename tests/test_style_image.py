@@ -227,3 +227,29 @@ def test_picture_runs_take_the_dial_and_mix_with_a_text_run(picture_runs):
     assert np.allclose(mix([picture, text], [1.0, 0.0]).render(view, 24)["rgb"], full, atol=1e-5)
     both = mix([picture, text], [1.0, 1.0]).render(view, 24)["rgb"]
     assert np.isfinite(both).all() and not np.allclose(both, full, atol=1e-4)
+
+
+@pytest.mark.slow
+def test_a_preview_takes_a_picture_and_says_how_close_it_came(picture_runs, shared_runs, caplog):
+    from pipeline_helpers import TINY, composed
+
+    from nerfart_plugin.run.pipeline import run
+
+    pic = json.loads((picture_runs["picture"] / "metrics.json").read_text())["style_image"]["file"]
+    with caplog.at_level("INFO", logger="nerfart_plugin"):
+        out = run(composed(f"output_root={shared_runs}", *TINY, "guidance=toy", "reconstruct.steps=60", "stage=preview",
+                           "preview.steps=2", "preview.resolution=24", f"style_image.file={pic}"))
+    assert Path(out["preview"]["preview"]).is_file()
+    assert "distance to the style picture" in caplog.text and "preview of 'stripes'" in caplog.text
+
+
+def test_the_sample_pictures_command_writes_readable_pictures(tmp_path):
+    from nerfart_plugin.data.style_pictures import PICTURES, main
+
+    assert main(["--dest", str(tmp_path), "coffee", "swirls"]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["coffee.png", "swirls.png"]
+    swirls = read_style_image(tmp_path / "swirls.png")
+    assert swirls.shape == (3, 512, 512) and float(swirls.std()) > 0.1  # a picture, not a flat colour
+    assert set(PICTURES) == {"hubble", "stain", "coffee", "retina", "swirls"}
+    with pytest.raises(SystemExit):
+        main(["--dest", str(tmp_path), "monalisa"])
