@@ -39,16 +39,19 @@ PROMPT = "brain coral"
 SETTINGS = ("guidance=imagenet",)
 #: (Gaussians, steps); the last is the default of export.splat_count / export.splat_steps
 BUDGETS = ((10000, 500), (20000, 1000), (40000, 1500))
+#: --quick: a tiny head, two small budgets (a smoke test of the benchmark, not a measurement)
+QUICK_SETTINGS = ("data.resolution=32", "reconstruct.steps=60", "stylize.steps=3", "stylize.video_frames=2",
+                  "export.resolution=32", "export.texture=false", "render.num_samples=16")
+QUICK_BUDGETS = ((500, 10), (1000, 20))
 GOAL_DB, GOAL_S = 28.0, 300.0
 IMAGES = ROOT / "docs" / "images"
 
-
-def train(root: Path, prompt: str | None) -> Path:
+def train(root: Path, prompt: str | None, quick: bool = False) -> Path:
     """The reconstruction (``prompt`` None) or the stylization of ``prompt``, trained or reused."""
     from nerfart_plugin.config.compose import load_config
     from nerfart_plugin.run.pipeline import run
 
-    base = [f"output_root={root}", *SETTINGS]
+    base = [f"output_root={root}", *SETTINGS, *(QUICK_SETTINGS if quick else ())]
     if prompt is None:
         return Path(run(load_config([*base, "stage=reconstruct"]))["reconstruction"]["dir"])
     return Path(run(load_config([*base, f"+prompt={json.dumps(prompt)}"]))["stylization"]["dir"])
@@ -74,7 +77,7 @@ def step_seconds(splats: Any, views: Any, repeats: int = 5) -> float:
     return statistics.median(times)
 
 
-def bounds(run: Any) -> dict[str, Any]:
+def bounds(run: Any, budgets: tuple[tuple[int, int], ...]) -> dict[str, Any]:
     """The surface initialization's quality at the default count, and one step's cost at each budget's count."""
     from nerfart_plugin.export.splats import SplatFit, field_background, field_views, initial_splats, splat_quality
 
@@ -86,26 +89,26 @@ def bounds(run: Any) -> dict[str, Any]:
     per_view = (time.perf_counter() - t0) / 4
     held_views = field_views(run, held, 0, cfg.resolution)
     out: dict[str, Any] = {"field_render_s_per_view": per_view, "resolution": cfg.resolution, "steps": {}}
-    for count, _ in BUDGETS:
+    for count, _ in budgets:
         t0 = time.perf_counter()
         splats = initial_splats(run.renderer.field, count, cfg.seed)
         init_s = time.perf_counter() - t0
         out["steps"][count] = {"step_s": step_seconds(splats, views), "initialization_s": init_s}
-        if count == cfg.count:
+        if count == budgets[-1][0]:
             out["initial"] = splat_quality(splats, held_views, field_background(run))
     log.info("bounds: %s", out)
     return out
 
 
 # ---------------------------------------------------------------------- the budgets
-def export(run: Any, folder: Path, count: int, steps: int, clients: Path | None) -> dict[str, Any]:
+def export(run: Any, folder: Path, count: int, steps: int, clients: Path | None, resolution: int) -> dict[str, Any]:
     """One export at a budget (as ``stage=export export.splats=true`` does), with its compressed size."""
     from benchmarks.splat_clients import splat_transform
 
     from nerfart_plugin.export.splats import SplatFit, export_splats
 
     path = folder / f"splats-{count}-{steps}.ply"
-    report = export_splats(run, path, SplatFit(count=count, steps=steps))
+    report = export_splats(run, path, SplatFit(count=count, steps=steps, resolution=resolution))
     if clients is not None:
         compressed = path.with_suffix(".compressed.ply")
         done = splat_transform(clients, str(path), str(compressed))
@@ -116,7 +119,7 @@ def export(run: Any, folder: Path, count: int, steps: int, clients: Path | None)
 
 
 # ---------------------------------------------------------------------- the picture
-def picture(run: Any, ply: Path, clients: Path | None, view: int, resolution: int) -> dict[str, Any]:
+def picture(run: Any, ply: Path, clients: Path | None, view: int, resolution: int, to: Path) -> dict[str, Any]:
     """field | our rasterizer | Spark in Chromium, from the held-out camera ``view`` at ``resolution`` px, and
     the agreement of the two splat renderers."""
     from benchmarks.splat_clients import spark_screenshot
@@ -145,40 +148,44 @@ def picture(run: Any, ply: Path, clients: Path | None, view: int, resolution: in
     row = tiles[0]
     for tile in tiles[1:]:
         row = side_by_side(row, tile, labels=None)
-    out["picture"] = str(save_image(row, IMAGES / "splats.png"))
+    out["picture"] = str(save_image(row, to))
     return out
 
 
 # ---------------------------------------------------------------------- the report
-def measure(root: Path, prompt: str) -> dict[str, Any]:
+def measure(root: Path, prompt: str, quick: bool, figures: Path) -> dict[str, Any]:
     from benchmarks.splat_clients import install_clients, missing_node
 
     from nerfart_plugin.api import open_run
+    from nerfart_plugin.export.splats import SplatFit
 
+    budgets = QUICK_BUDGETS if quick else BUDGETS
+    resolution = 32 if quick else SplatFit().resolution
     clients = None if missing_node() else install_clients()
-    folders = {"source": train(root, None), "stylized": train(root, prompt)}
+    folders = {"source": train(root, None, quick), "stylized": train(root, prompt, quick)}
     runs = {name: open_run(folder, device="cpu") for name, folder in folders.items()}
-    out: dict[str, Any] = {"prompt": prompt, "folders": {k: str(v) for k, v in folders.items()},
-                           "bounds": bounds(runs["source"]), "budgets": {}}
+    out: dict[str, Any] = {"prompt": prompt, "quick": quick, "folders": {k: str(v) for k, v in folders.items()},
+                           "bounds": bounds(runs["source"], budgets), "budgets": {}}
     scratch = root / "splat-bench"
     for name, run in runs.items():
         folder = scratch / name
         folder.mkdir(parents=True, exist_ok=True)
-        out["budgets"][name] = [export(run, folder, count, steps, clients) for count, steps in BUDGETS]
+        out["budgets"][name] = [export(run, folder, count, steps, clients, resolution) for count, steps in budgets]
     held = [i for i in range(len(runs["stylized"].cameras.c2w)) if i not in set(runs["stylized"].cameras.train_ids)]
-    count, steps = BUDGETS[-1]
+    count, steps = budgets[-1]
     out["picture"] = picture(runs["stylized"], scratch / "stylized" / f"splats-{count}-{steps}.ply", clients, held[0],
-                             2 * out["budgets"]["stylized"][-1]["resolution"])
+                             2 * resolution, (figures if quick else IMAGES) / "splats.png")
     return out
 
 
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     b = raw["bounds"]
-    default_count = BUDGETS[-1][0]
+    default_count = raw["budgets"]["source"][-1]["gaussians"]
     init = b["initial"]
     body = [f"The shipped head, its reconstruction and `+prompt=\"{raw['prompt']}\"` (the main job's settings, "
             "`guidance=imagenet`), fitted at the field's renders of the capture's training views and 24 orbit "
-            f"views at {b['resolution']} px; quality on the held-out views at the same size.", "",
+            f"views at {raw['budgets']['source'][-1]['resolution']} px; quality on the held-out views at the same "
+            "size." + (" **Quick run: a tiny head and budgets, not a measurement.**" if raw.get("quick") else ""), "",
             f"Bounds: the surface initialization alone ({default_count} Gaussians, no fitting) reaches "
             f"{init['psnr']:.2f} dB / SSIM {init['ssim']:.3f}; the field renders a view in "
             f"{b['field_render_s_per_view']:.2f} s; one fitting step of the PyTorch rasterizer (a quarter of a "
@@ -216,7 +223,8 @@ def main(argv: list[str] | None = None) -> int:
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw = common.raw_results(args, NAME, lambda: measure(args.out_root, args.prompt))
+    _, figures = common.output_paths(args)
+    raw = common.raw_results(args, NAME, lambda: measure(args.out_root, args.prompt, args.quick, figures))
     common.finish(args, NAME, report(raw, info, common.command("splats.py", argv or sys.argv[1:])))
     return 0
 

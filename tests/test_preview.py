@@ -1,4 +1,4 @@
-"""stage=preview: a short low-resolution stylization that tells whether a prompt will work."""
+"""stage=preview: the full run's first steps, shown through the dial, with a verdict on the prompt."""
 
 from __future__ import annotations
 
@@ -37,8 +37,9 @@ def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, ca
     with caplog.at_level("INFO", logger="nerfart_plugin"):
         again = run(cfg)["preview"]  # reused, scores reported again
     assert again["judge"] == judge
-    line = f"preview of 'zebra': the guide's directional similarity {metrics['clip_directional_similarity']:.3f}"
-    assert line in caplog.text and "the judge's P(zebra)" in caplog.text
+    assert metrics["verdict"]["verdict"] == "uncalibrated"  # the toy guide has no calibration
+    assert f"preview of 'zebra': uncalibrated (the verdict is calibrated for guidance=imagenet" in caplog.text
+    assert "the judge's P(zebra)" in caplog.text
 
 
 def test_preview_needs_a_prompt_and_a_sane_size(tmp_path):
@@ -47,3 +48,47 @@ def test_preview_needs_a_prompt_and_a_sane_size(tmp_path):
     proc = run_cli([f"output_root={tmp_path}", "stage=preview", "+prompt=zebra", "preview.resolution=4",
                     f"hydra.run.dir={tmp_path}/hydra"])
     assert proc.returncode == 2 and "preview.resolution=4" in proc.stdout + proc.stderr
+
+
+def test_the_verdict_reads_the_calibrated_thresholds():
+    from nerfart_plugin.run.stages.preview import CALIBRATION, verdict
+
+    cal = CALIBRATION["imagenet"]
+    assert verdict(cal.likely, "imagenet")["verdict"] == "likely to work"
+    assert verdict(cal.likely - 1e-6, "imagenet")["verdict"] == "uncertain: run it"
+    assert verdict(cal.unlikely, "imagenet")["verdict"] == "uncertain: run it"
+    assert verdict(cal.unlikely - 1e-6, "imagenet")["verdict"] == "unlikely to work"
+    assert cal.unlikely <= cal.likely
+    out = verdict(0.3, "clip")
+    assert out["verdict"] == "uncalibrated" and out["score"] == 0.3 and "guidance=imagenet" in out["why"]
+    assert verdict(None, "imagenet")["verdict"] == "uncalibrated"
+    assert f"{cal.likely:.2f}" in verdict(0.9, "imagenet")["why"]
+
+
+@pytest.mark.slow
+def test_the_preview_is_the_full_runs_start_and_shows_the_full_run_once_it_exists(shared_runs):
+    """The preview's field after N steps is a full run's after N steps (the same views, seeds and schedule;
+    nothing in a stylization depends on its total steps); preview.png gains the full run's column when the
+    preview is asked for again after that run finished."""
+    import torch
+
+    from nerfart_plugin.run.pipeline import run
+
+    base = [*TINY_STYLE, "prompt=zebra", "stylize.resolution=24", "stylize.video_frames=0", "export.enabled=false",
+            "stylize.steps=3"]
+    preview_cfg = tiny_cfg(shared_runs, DEFAULT_SCENE, *base, "stage=preview", "preview.steps=3", "preview.strength=1")
+    preview = Path(run(preview_cfg)["preview"]["preview"]).parent
+
+    def picture() -> tuple[int, bool]:
+        with Image.open(preview / "preview.png") as im:
+            return im.size[0], json.loads((preview / "metrics.json").read_text())["picture_has_full_run"]
+
+    narrow, has_full = picture()
+    assert not has_full
+    full = Path(run(tiny_cfg(shared_runs, DEFAULT_SCENE, *base, "stage=stylize"))["stylization"]["dir"])
+    a = torch.load(preview / "final.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    b = torch.load(full / "final.ckpt", map_location="cpu", weights_only=False)["state_dict"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    run(preview_cfg)  # reused: the picture is drawn again with the full run's views
+    wide, has_full = picture()
+    assert has_full and wide > narrow * 1.4

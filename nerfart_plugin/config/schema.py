@@ -352,12 +352,16 @@ MixWeight = Annotated[Float, Field(ge=-1.0, le=2.0)]
 
 
 class PreviewConfig(Section):
-    """``preview``: ``stage=preview``, a short low-resolution stylization of the cached reconstruction that tells
-    in about a minute whether a prompt moves the guide and the judge (every other setting as ``stylize``)."""
+    """``preview``: ``stage=preview``, the first steps of the stylization a full run would make (same settings,
+    same views, same schedule), shown through the strength dial, with a verdict on the prompt in words."""
 
-    steps: Int = Setting(48, ge=1, le=10_000, description="optimizer steps of the preview (one view each)")
-    resolution: Annotated[Int, Field(ge=16, le=1024)] = Setting(128, description="long side (pixels) of the "
-                                                                 "preview's views")
+    steps: Int = Setting(16, ge=1, le=10_000, description="optimizer steps of the preview: the full run's first "
+                         "steps (one view each)")
+    resolution: Union[Literal["auto"], Annotated[Int, Field(ge=16, le=1024)]] = Setting(
+        "auto", description="long side (pixels) of the preview's views; auto: the full run's (stylize.resolution), "
+        "so the preview is the full run's start")
+    strength: Float = Setting(2.0, ge=0.0, le=8.0, description="the strength the preview's views are shown at "
+                              "(the dial, applied to the preview's change): > 1 shows where the full run is heading")
 
 
 class MixConfig(Section):

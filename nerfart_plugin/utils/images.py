@@ -95,6 +95,25 @@ def image_grid(images: Sequence[np.ndarray], ncols: int | None = None, gap: int 
     return grid
 
 
+def with_caption(img: np.ndarray, text: str) -> np.ndarray:
+    """``img`` (HxWx3) under a white band holding ``text`` in black, wrapped to the image's width."""
+    import textwrap
+
+    img = to_uint8(img)
+    size = max(11, min(18, img.shape[1] // 40))
+    try:
+        font = ImageFont.load_default(size=size)
+    except TypeError:  # Pillow < 10.1
+        font = ImageFont.load_default()
+    chars = max(20, int(img.shape[1] / (0.55 * size)))
+    lines = textwrap.wrap(text, chars) or [""]
+    band = Image.new("RGB", (img.shape[1], (len(lines) * (size + 4)) + 8), (255, 255, 255))
+    draw = ImageDraw.Draw(band)
+    for i, line in enumerate(lines):
+        draw.text((4, 4 + i * (size + 4)), line, fill=(0, 0, 0), font=font)
+    return np.concatenate([np.asarray(band), img], axis=0)
+
+
 def save_image(image: np.ndarray, path: str | os.PathLike) -> Path:
     """Save one image (PNG/JPEG by suffix) atomically."""
 

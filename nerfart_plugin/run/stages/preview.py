@@ -1,8 +1,15 @@
-"""``stage=preview``: a short, low-resolution stylization that says in about a minute how a prompt will go.
+"""``stage=preview``: the start of the full stylization, shown through the strength dial, with a verdict in words.
 
-Same source, prompt, guide and losses as the full stylization (:class:`~nerfart_plugin.run.stages.stylize.StylizeStage`),
-``preview.steps`` steps at ``preview.resolution`` px, no video, no meshes; the log line gives the guide's
-directional similarity (any prompt) and the judge's verdict (prompts naming an ImageNet class).
+A preview is the full run's first ``preview.steps`` steps: the same source, style, losses, views, resolution
+(``preview.resolution=auto``) and per-step seeds, so its field is the field the full run passes through. Its
+held-out views are rendered with the change so far scaled by ``preview.strength`` (the strength dial, applied to
+the preview: θ_src + s·(θ_preview − θ_src)), which shows the direction the full run takes further. No video, no
+meshes. ``preview.png`` shows source | preview | the full run's view where that run has finished (drawn again
+when the preview is asked for after the full run), under the verdict.
+
+The verdict (:func:`verdict`) reads the guide's directional similarity of the dialed views against thresholds
+calibrated on the study's prompts with the guide they were measured with (:data:`CALIBRATION`); for another
+guide it says the scores are uncalibrated.
 """
 
 from __future__ import annotations
@@ -10,91 +17,187 @@ from __future__ import annotations
 import copy
 import json
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
+import imageio.v3 as iio
+import numpy as np
+import torch
+
 from nerfart_plugin.guidance.style import Style
+from nerfart_plugin.results.blend import blended_renderer
 from nerfart_plugin.run.factories import SceneContext
 from nerfart_plugin.run.fit import FitResult
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.run.stages.base import LiveViewerFactory, StageResult
 from nerfart_plugin.run.stages.stylize import StylizeStage
-from nerfart_plugin.utils.images import image_grid, save_image, side_by_side
+from nerfart_plugin.utils.io import atomic_write_json
+from nerfart_plugin.utils.images import image_grid, label_image, save_image, side_by_side, to_uint8, with_caption
 
 log = logging.getLogger("nerfart_plugin")
 
 
+@dataclass(frozen=True)
+class Calibration:
+    """Verdict thresholds on the guide's directional similarity of a preview, for one guide.
+
+    Attributes:
+        guide: the ``guidance`` they were measured with; likely / unlikely: at or above ``likely`` "likely to
+        work", below ``unlikely`` "unlikely to work", between them "uncertain: run it"; record: what the study
+        found (how many prompts each verdict got right), quoted in the verdict.
+    """
+
+    guide: str
+    likely: float
+    unlikely: float
+    record: str
+
+
+#: the verdict's thresholds per guide, from ``python -m benchmarks preview`` (BENCHMARKS.md, "The preview")
+CALIBRATION: dict[str, Calibration] = {
+    "imagenet": Calibration("imagenet", likely=0.25, unlikely=0.15, record="not yet calibrated"),
+}
+
+
+def verdict(direction: Optional[float], guide: str) -> dict[str, Any]:
+    """The preview's verdict on its prompt: ``{"verdict": "likely to work" | "unlikely to work" | "uncertain: run
+    it" | "uncalibrated", "why": ..., "score": direction}``."""
+    cal = CALIBRATION.get(guide)
+    if direction is None:
+        return {"verdict": "uncalibrated", "why": "no prompt: a style picture alone has no directional score",
+                "score": None}
+    if cal is None:
+        return {"verdict": "uncalibrated", "why": f"the verdict is calibrated for guidance={', '.join(CALIBRATION)} "
+                f"only; compare guidance={guide} previews by their directional similarity", "score": direction}
+    if direction >= cal.likely:
+        word, rule = "likely to work", f">= {cal.likely:.2f}"
+    elif direction < cal.unlikely:
+        word, rule = "unlikely to work", f"< {cal.unlikely:.2f}"
+    else:
+        word, rule = "uncertain: run it", f"between {cal.unlikely:.2f} and {cal.likely:.2f}"
+    return {"verdict": word, "score": direction,
+            "why": f"the guide's directional similarity {direction:.3f} is {rule} ({cal.record})"}
+
+
 class PreviewStage(StylizeStage):
-    """``stage=preview``: the stylization of the same source, prompt and losses, shortened to ``preview.steps``
-    steps at ``preview.resolution`` px, without video or meshes, into ``previews/<prompt>-<backbone>-<key>/``:
-    ``preview.png`` (source | preview on the held-out views), ``heldout/`` and ``metrics.json`` with the
-    guide's and the judge's scores. A finished preview is reused (its scores logged again)."""
+    """``stage=preview``: the stylization of the same source and style, stopped after ``preview.steps`` steps,
+    into ``previews/<style>-<backbone>-<key>/``: ``preview.png``, ``heldout/`` (at the dialed strength) and
+    ``metrics.json`` (the verdict, the guide's and the judge's scores). A finished preview is reused (its verdict
+    logged again, its picture completed with the full run's views once that run exists). Previews of settings
+    that differ only in the full run's length are one preview: the same first steps."""
 
     reused_message = "this preview is already complete: %s (not recomputed)"
     stage = "preview"
 
     def __init__(self, scene: SceneContext, style: Style, source: Path, source_keys: dict[int, str],
                  live: Optional[LiveViewerFactory] = None) -> None:
+        self.full_run = StylizeStage(scene, style, source, source_keys).folder  # the run this previews
         super().__init__(preview_scene(scene), style, source, source_keys, live)
         self.folder = RunFolder.find(scene.root / "previews", self.names, "preview")
 
+    @property
+    def strength(self) -> float:
+        """The dial the views are shown at (1 inside a region: the composite is shown as trained)."""
+        return 1.0 if self.region is not None else float(self.scene.cfg.preview.strength)
+
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        dialed = None
+        if self.strength != 1.0:
+            dialed = blended_renderer(system.renderer, system.source, [system.renderer], [self.strength])
         with self.clock.part("evaluation"):
-            metrics = self.heldout_metrics(system)
-        _, src, sty = self.heldout_views
-        rows = [side_by_side(a.permute(1, 2, 0), b.permute(1, 2, 0), labels=("source", f"preview, {fit.steps} steps"))
-                for a, b in zip(src, sty)]
-        save_image(image_grid(rows, ncols=1), self.folder.path / "preview.png")
+            metrics = self.heldout_metrics(system, renderer=dialed)
+        metrics["verdict"] = verdict(metrics.get("clip_directional_similarity"), self.scene.cfg.guidance.name)
         metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "style": self.style.name,
-                        "steps": fit.steps,
-                        "resolution": self.settings.resolution, "train_seconds_this_process": fit.seconds,
+                        "steps": fit.steps, "resolution": self.settings.resolution, "strength": self.strength,
+                        "train_seconds_this_process": fit.seconds, "full_run": str(self.full_run.path),
                         "source_checkpoint": str(Path(self.source).resolve()), "stamp": self.style.stamp or None})
+        metrics["picture_has_full_run"] = draw_preview(self.folder.path, metrics, self.full_run)
         log_preview(self.folder.path, metrics)
         return metrics
+
+    def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
+        return {**super().auto_choices(system, fit), "preview.resolution": self.settings.resolution}
 
     def reuse(self) -> StageResult:
         result = super().reuse()
         metrics = _read_json(self.folder.path / "metrics.json")
+        shown = metrics.get("picture_has_full_run") and metrics.get("full_run") == str(self.full_run.path)
+        if metrics and self.full_run.finished and not shown:  # previews of one start serve several full runs
+            metrics.update(full_run=str(self.full_run.path),
+                           picture_has_full_run=draw_preview(self.folder.path, metrics, self.full_run))
+            atomic_write_json(self.folder.path / "metrics.json", metrics)
         log_preview(self.folder.path, metrics)
         return StageResult(result.checkpoint, {**result.summary, **self.summary(metrics)})
 
     def summary(self, metrics: dict[str, Any]) -> dict[str, Any]:
-        judge = metrics.get("judge") or {}
-        return {"preview": str(self.folder.path / "preview.png"), "judge": judge,
+        return {"preview": str(self.folder.path / "preview.png"), "judge": metrics.get("judge") or {},
+                "verdict": (metrics.get("verdict") or {}).get("verdict"),
                 **{k: v for k, v in metrics.items() if k.startswith("clip_")}}
 
 
 def preview_scene(scene: SceneContext) -> SceneContext:
-    """``scene`` under the preview's settings: ``preview.steps`` / ``preview.resolution`` in place of the
-    stylization's, no video, no saved renders, no meshes."""
-
+    """``scene`` under the preview's settings: ``preview.steps`` steps at ``preview.resolution`` (auto: the
+    stylization's own) in place of the stylization's, no video, no saved renders, no meshes."""
     plain = copy.deepcopy(scene.plain)
     pc = scene.cfg.preview
-    plain["stylize"].update(steps=pc.steps, epochs=None, resolution=pc.resolution, video_frames=0, render_every=0)
+    update = {"steps": pc.steps, "epochs": None, "video_frames": 0, "render_every": 0}
+    if pc.resolution != "auto":
+        update["resolution"] = pc.resolution
+    plain["stylize"].update(update)
     plain["export"]["enabled"] = False
     return scene.with_config(plain)
 
 
+def draw_preview(folder: Path, metrics: dict[str, Any], full_run: RunFolder) -> bool:
+    """``preview.png``: one row per held-out view, source | preview (at its strength) | the full run's view where
+    ``full_run`` has finished, under the verdict; True when the full run's views are in it."""
+    rows, with_full = [], full_run.finished
+    s, steps = metrics.get("strength", 1.0), metrics.get("steps")
+    for stylized in sorted((folder / "heldout").glob("stylized_*.png")):
+        source = iio.imread(stylized.with_name(stylized.name.replace("stylized_", "source_")))
+        tiles = [label_image(to_uint8(source), "source"),
+                 label_image(to_uint8(iio.imread(stylized)), f"preview: {steps} steps, shown at {s:g}x")]
+        full = full_run.path / "heldout" / stylized.name
+        if with_full and full.is_file():
+            tiles.append(label_image(_resized(iio.imread(full), source.shape[:2]), "the full run"))
+        row = tiles[0]
+        for tile in tiles[1:]:
+            row = side_by_side(row, tile, labels=None)
+        rows.append(row)
+    if not rows:
+        return False
+    v = metrics.get("verdict") or {}
+    caption = f"{metrics.get('style') or metrics.get('prompt')}: {v.get('verdict', 'no verdict')} ({v.get('why', '')})"
+    save_image(with_caption(image_grid(rows, ncols=1), caption), folder / "preview.png")
+    return with_full
+
+
+def _resized(img: np.ndarray, hw: tuple[int, int]) -> np.ndarray:
+    if img.shape[:2] == tuple(hw):
+        return to_uint8(img)
+    t = torch.from_numpy(to_uint8(img)).permute(2, 0, 1)[None].float()
+    out = torch.nn.functional.interpolate(t, size=hw, mode="bilinear", antialias=True)[0].permute(1, 2, 0)
+    return out.clamp(0, 255).round().byte().numpy()
+
+
 def log_preview(folder: Path, metrics: dict[str, Any]) -> None:
-    """One line a user reads: how far the guide moved the views toward the prompt (any prompt; compare prompts by
-    it), the judge's verdict where the prompt names an ImageNet class, and where the picture is."""
-    direction = metrics.get("clip_directional_similarity")
-    guide = "" if direction is None else f"the guide's directional similarity {direction:.3f} (higher: a stronger " \
-                                         "full run, to compare prompts by); "
+    """One line a user reads: the verdict and why, the judge's reading where the prompt names an ImageNet class,
+    the distance to a style picture, and where the picture is."""
+    v = metrics.get("verdict") or {}
+    parts = [f"{v['verdict']} ({v['why']})"] if v else []
     picture = metrics.get("style_image") or {}
     if "nnfm_stylized" in picture:
-        guide += (f"distance to the style picture (the judge's features; lower: closer) {picture['nnfm_source']:.3f} "
-                  f"-> {picture['nnfm_stylized']:.3f}, colours {picture['colour_emd_source']:.1f} -> "
-                  f"{picture['colour_emd_stylized']:.1f}; ")
+        parts.append(f"distance to the style picture (the judge's features; lower: closer) {picture['nnfm_source']:.3f} "
+                     f"-> {picture['nnfm_stylized']:.3f}, colours {picture['colour_emd_source']:.1f} -> "
+                     f"{picture['colour_emd_stylized']:.1f}")
     judge = metrics.get("judge") or {}
     if "stylized" in judge:
-        log.info("preview of %r: %sthe judge's P(%s) %.4f -> %.4f, top-5 on %.0f%% -> %.0f%% of the held-out "
-                 "views; see %s", metrics.get("style") or metrics.get("prompt"), guide, judge["target_class"],
-                 judge["source"]["mean_target_prob"], judge["stylized"]["mean_target_prob"],
-                 100 * judge["source"]["top5_rate"], 100 * judge["stylized"]["top5_rate"], folder / "preview.png")
-    else:
-        log.info("preview of %r: %sjudge: %s; see %s", metrics.get("style") or metrics.get("prompt"), guide, judge.get("skipped", "none"),
-                 folder / "preview.png")
+        parts.append(f"the judge's P({judge['target_class']}) {judge['source']['mean_target_prob']:.4f} -> "
+                     f"{judge['stylized']['mean_target_prob']:.4f}, top-5 on {100 * judge['source']['top5_rate']:.0f}% "
+                     f"-> {100 * judge['stylized']['top5_rate']:.0f}% of the held-out views")
+    log.info("preview of %r: %s; see %s", metrics.get("style") or metrics.get("prompt"), "; ".join(parts) or "done",
+             folder / "preview.png")
 
 
 def _read_json(path: Path) -> dict[str, Any]:

@@ -116,15 +116,18 @@ class StylizeStage(TrainingStage):
         return {**super().auto_choices(system, fit), **style_choices(self.style, self.settings, self.scene.cfg)}
 
     @torch.no_grad()
-    def heldout_metrics(self, system: Any) -> dict[str, Any]:
+    def heldout_metrics(self, system: Any, renderer: Optional[Any] = None) -> dict[str, Any]:
         """CLIP scores, colour means, edge similarity, silhouette IoU, the judge and the off-surface weight
-        on the held-out views (``heldout/`` images saved)."""
+        on the held-out views (``heldout/`` images saved); ``renderer``: what renders the stylization (default
+        the system's own view; a preview passes its field at its strength)."""
 
         system.to(self.scene.device).eval()
         scene = self.scene.scene
         ids = scene.val_ids or scene.train_ids[:4]
         views = self.scene.views(ids, self.settings.resolution)
-        sty_out = [system.render_batch(v) for v in views]
+        stylized = renderer if renderer is not None else system.view
+        sty_out = [system.render_view(v, chunk=self.settings.chunk, with_normals=False, renderer=stylized)
+                   for v in views]
         src_out = [system.render_batch(v, source=True) for v in views]
         sty = torch.stack([o["rgb"].permute(2, 0, 1) for o in sty_out]).clamp(0, 1)
         src = torch.stack([o["rgb"].permute(2, 0, 1) for o in src_out]).clamp(0, 1)
@@ -151,7 +154,7 @@ class StylizeStage(TrainingStage):
         metrics["evaluated_on"] = evaluation_views(scene)
 
         dev = self.scene.device
-        metrics["off_surface_weight"] = float(np.mean([off_surface_share(system.view, to_device(v, dev))
+        metrics["off_surface_weight"] = float(np.mean([off_surface_share(stylized, to_device(v, dev))
                                                        for v in views]))
         metrics["off_surface_weight_source"] = float(np.mean([off_surface_share(system.source, to_device(v, dev))
                                                               for v in views]))
