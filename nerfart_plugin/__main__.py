@@ -91,11 +91,23 @@ def check_output_root(argv: list[str]) -> None:
         check_writable_dir(root, "output_root", create=False)
 
 
+def check_printed_config(argv: list[str]) -> None:
+    """With ``--cfg`` (job, hydra, all) the config Hydra prints is validated as a run's would be: a typo or a bad
+    value is a ConfigError (exit 2), not a printed config and exit 0."""
+    if not any(a in ("--cfg", "-c") or a.startswith("--cfg=") for a in argv):
+        return
+    from nerfart_plugin.config.compose import load_config
+    from nerfart_plugin.config.validate import parse_config
+
+    parse_config(load_config([a for a in argv if "=" in a and not a.startswith(("-", "hydra."))]))
+
+
 def main() -> None:
     try:
         argv = normalize_overrides(sys.argv[1:])
         argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.config.plugins)
         check_output_root(argv)
+        check_printed_config(argv)
     except ConfigError as exc:  # before Hydra configures logging: Python's last-resort handler prints it to stderr
         log.error("ConfigError: %s", exc)
         sys.exit(2)

@@ -54,3 +54,17 @@ def test_content_that_does_not_match_is_refused_and_not_kept(tmp_path):
     with pytest.raises(DataError, match="expected .* bytes with .*nothing was kept"):
         download("girl", tmp_path / "out", mirror=str(tmp_path / "mirror"))
     assert not (tmp_path / "out" / "girl" / rel).exists()
+
+
+def test_ctrl_c_says_the_download_resumes(tmp_path, monkeypatch, caplog):
+    import logging
+
+    import nerfart_plugin.data.download as dl
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dl, "fetch", interrupted)
+    with caplog.at_level(logging.ERROR, logger="nerfart_plugin"):
+        assert main(["girl", "--dest", str(tmp_path), "--mirror", str(tmp_path)]) == 130
+    assert "interrupted; the files already downloaded are kept: run the same command again to resume" in caplog.text

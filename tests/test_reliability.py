@@ -539,3 +539,12 @@ def test_a_stylization_that_lost_its_subject_says_so(caplog):
         text = lost_subject(0.0)
     assert "lost its subject: silhouette IoU 0.00" in text and "stylize.lr" in text and text in caplog.text
     assert lost_subject(LOST_SUBJECT_IOU) is None and lost_subject(0.97) is None and lost_subject(None) is None
+
+
+@pytest.mark.parametrize("flag", [["--cfg", "job"], ["--cfg", "all"], ["-c", "hydra"]])
+def test_printing_the_config_validates_it_as_a_run_does(tmp_path, flag):
+    """``--cfg`` prints the config a run would use: a typo or a bad value is refused (exit 2), as the run would."""
+    bad = run_cli([f"output_root={tmp_path}", "render.num_sampels=3", *flag])
+    assert bad.returncode == 2 and "did you mean render.num_samples" in bad.stdout + bad.stderr
+    good = run_cli([f"output_root={tmp_path}", "render.num_samples=3", *flag])
+    assert good.returncode == 0

@@ -87,6 +87,14 @@ def test_bad_camera_paths_say_what_is_wrong(head_cameras: CaptureCameras, tmp_pa
     bad.write_text("{not json")
     with pytest.raises(DataError, match="Cannot read the camera path"):
         read_camera_path(bad, head_cameras)
+    # values from a file go through the checks of the command line: render.fps=-5 is refused, so is "fps": -5
+    good = tmp_path / "good.json"
+    write_camera_path(resolve_path(head_cameras, "orbit", frames=3), head_cameras, good, fps=24)
+    for fps in (-5, 0, 500, "fast"):
+        bad.write_text(json.dumps({**json.loads(good.read_text()), "fps": fps}))
+        with pytest.raises(DataError, match=r"bad.json: its fps .* is refused, as render.fps="):
+            read_camera_path(bad, head_cameras)
+    assert read_camera_path(good, head_cameras).fps == 24
 
 
 def test_depth_normals_of_a_plane_face_the_camera() -> None:

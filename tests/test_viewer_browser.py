@@ -82,6 +82,34 @@ def test_the_viewer_cli_refuses_a_missing_run_without_a_traceback(tmp_path):
     assert "nope" in proc.stderr
 
 
+@pytest.mark.slow
+def test_the_viewer_cli_says_which_port_it_took_when_the_asked_one_is_taken(styles):
+    import socket
+    import subprocess
+    import sys
+
+    from pipeline_helpers import cli_env
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        proc = subprocess.Popen([sys.executable, "-m", "nerfart_plugin.viewer", str(styles["red"]), "--port", str(port),
+                                 "--device", "cpu"], env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                text=True)
+        try:
+            lines = []
+            for line in proc.stdout:
+                lines.append(line)
+                if "in a browser" in line:
+                    break
+        finally:
+            proc.kill()
+            proc.wait(timeout=30)
+    text = "".join(lines)
+    assert f"port {port} is taken: serving on port" in text, text[-2000:]
+
+
 # ---------------------------------------------------------------------- in the browser
 @pytest.fixture(scope="module")
 def page(styles, chromium):

@@ -25,13 +25,15 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Any, Optional
 
 import numpy as np
 import torch
 
 from nerfart_plugin.cameras.capture import CaptureCameras, scale_intrinsics
 from nerfart_plugin.cameras.orbits import orbit_path
+from nerfart_plugin.config.schema import RenderConfig
+from nerfart_plugin.config.validate import section
 from nerfart_plugin.errors import ConfigError, DataError
 from nerfart_plugin.utils.io import atomic_write_json
 
@@ -134,9 +136,21 @@ def read_camera_path(path: Path, cams: CaptureCameras, frame: str = "world",
         fy = 0.5 * H / np.tan(np.deg2rad(fov) / 2)
         K = np.zeros((len(fov), 3, 3))
         K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = fy, fy, W / 2, H / 2, 1.0
-    fps = d.get("fps")
     return RenderPath(Path(path).stem, torch.as_tensor(c2w, dtype=torch.float32), torch.as_tensor(K, dtype=torch.float32),
-                      H, W, int(round(float(fps))) if fps else None)
+                      H, W, _file_fps(d.get("fps"), path))
+
+
+def _file_fps(fps: Any, path: Path) -> Optional[int]:
+    """A camera path file's ``fps``, checked as ``render.fps`` on the command line is (None: not given)."""
+    if fps is None:
+        return None
+    try:
+        value = int(round(float(fps)))
+        section(RenderConfig, {"fps": value})
+    except (TypeError, ValueError, ConfigError) as exc:
+        raise DataError(f"{path}: its fps {fps!r} is refused, as render.fps={fps} would be ({exc}); set the file's "
+                        "\"fps\" to a whole number of frames per second from 1 to 240.") from None
+    return value
 
 
 def write_camera_path(rp: RenderPath, cams: CaptureCameras, path: Path, fps: int, frame: str = "world") -> Path:

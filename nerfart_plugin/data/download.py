@@ -27,7 +27,7 @@ from typing import Any, Optional
 
 from tqdm import tqdm
 
-from nerfart_plugin.errors import DataError, NerfArtError
+from nerfart_plugin.errors import DataError, NerfArtError, RunInterrupted
 from nerfart_plugin.utils.io import atomic_path, file_sha256
 
 log = logging.getLogger("nerfart_plugin")
@@ -103,6 +103,10 @@ def main(argv: Optional[list[str]] = None) -> int:
     except NerfArtError as exc:
         log.error("%s: %s", type(exc).__name__, exc)
         return 2
+    except KeyboardInterrupt:  # the file in progress is discarded (written atomically); the finished ones stay
+        log.error("RunInterrupted: interrupted; the files already downloaded are kept: run the same command again "
+                  "to resume")
+        return RunInterrupted.exit_code
     return 0
 
 

@@ -39,6 +39,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                              checkpoint=args.checkpoint)
     except NerfArtError as exc:
         p.exit(2, f"error: {exc}\n")
+    if args.port and viewer.port != args.port:
+        logging.getLogger("nerfart_plugin.viewer").warning("port %d is taken: serving on port %d instead",
+                                                           args.port, viewer.port)
     if args.host not in ("127.0.0.1", "localhost", "::1"):
         logging.getLogger("nerfart_plugin.viewer").warning(
             "serving on %s: anyone who can reach this machine on port %d can view the run and use its panels "
