@@ -163,3 +163,30 @@ def test_colmap_lists_longer_than_their_files_are_refused_before_pycolmap_reads_
         (tmp_path / "short" / name).write_bytes(struct.pack("<Q", 5))
     with pytest.raises(DataError, match="declares 5 records but ends inside record 0"):
         read_colmap_model(tmp_path / "short")
+
+
+def test_the_scene_contract_refuses_captures_that_cannot_be_reconstructed():
+    """The family of degenerate captures, checked in one place (Scene.validate, every loader): tiny images, one
+    view, empty masks, no baseline, cameras looking away; each named with its fix."""
+    import dataclasses
+
+    import torch
+
+    from nerfart_plugin.data.scene import MIN_IMAGE_SIDE, RECONSTRUCTABLE
+
+    s = load_scene("h3ds", default_scene_path(), resolution=32)
+    assert s.validate() is s and len(RECONSTRUCTABLE) >= 5
+    n = s.num_images
+    small = dataclasses.replace(s, images=s.images[:, :8, :8], masks=s.masks[:, :8, :8])
+    cases = {
+        f"at least {MIN_IMAGE_SIDE} px a side": small,
+        "at least 2 views": dataclasses.replace(s, train_ids=[]),
+        "every mask is empty": dataclasses.replace(s, masks=torch.zeros_like(s.masks)),
+        "every camera sits at the same place": dataclasses.replace(
+            s, c2w=torch.cat([s.c2w[:, :, :3], s.c2w[:1, :, 3:].expand(n, 3, 1)], -1)),
+        "face the scene's centre": dataclasses.replace(
+            s, c2w=torch.cat([s.c2w[:, :, :1], -s.c2w[:, :, 1:3], s.c2w[:, :, 3:]], -1)),
+    }
+    for message, scene in cases.items():
+        with pytest.raises(DataError, match=f"Invalid scene from .*{message}"):
+            scene.validate()

@@ -260,6 +260,8 @@ def test_valid_tiny_file_loads(tiny):
     (lambda m: m.update(aabb=[[0, 0, 0], [1, 1]]), r"aabb must be \[\[xmin, ymin, zmin\], \[xmax, ymax, zmax\]\]"),
     (lambda m: m.update(aabb_scale=-4), r"aabb_scale=-4 must be positive"),
     (lambda m: m.update(train_filenames=["0.jpg", "9.jpg"]), r"train_filenames names \['9.jpg'\]"),
+    (lambda m: m["frames"][2].update(file_path="../../../../etc/passwd"),
+     r"frames\[2\]: file_path '../../../../etc/passwd' leads outside the capture's folder"),
 ])
 def test_malformed_files_name_the_file_and_the_fix(tiny, edit, message):
     meta, write = tiny
@@ -297,3 +299,17 @@ def test_nerfstudio_split_lists_and_ngp_box(tiny):
     assert float(torch.linalg.det(T[:3, :3]).pow(1 / 3)) == pytest.approx(0.33 / (math.sqrt(3) / 2), rel=1e-5)
     torch.testing.assert_close(T[:3, 3], torch.zeros(3, dtype=torch.float64), atol=1e-6, rtol=0)
     assert any("aabb_scale=16: the content out to that box is background" in n for n in s.notes)
+
+
+def test_rgba_frames_whose_alpha_is_zero_everywhere_are_refused(tiny):
+    """Alpha is the mask; an alpha of 0 everywhere would train on empty masks."""
+    meta, write = tiny
+    folder = write(meta)
+    for i in range(4):
+        rgb = np.asarray(Image.open(folder / f"{i}.jpg").convert("RGB"))
+        Image.fromarray(np.dstack([rgb, np.zeros(rgb.shape[:2], np.uint8)])).save(folder / f"{i}.png")
+    m = json.loads(json.dumps(meta))
+    for i, fr in enumerate(m["frames"]):
+        fr["file_path"] = f"{i}.png"
+    with pytest.raises(DataError, match="every mask is empty"):
+        load_scene("nerfstudio", write(m), resolution=32)

@@ -58,6 +58,7 @@ Splits: Blender's files (``data.splits``, default train + val: val/test frames a
 from __future__ import annotations
 
 import json
+import os
 import logging
 import math
 from dataclasses import dataclass
@@ -274,10 +275,15 @@ def parse_pose(frame: dict, where: str) -> np.ndarray:
 
 
 def resolve_image(base: Path, rel: Any, where: str, key: str = "file_path") -> Path:
-    """The file ``rel`` names under ``base``; without an extension the usual image ones are tried."""
+    """The file ``rel`` names under ``base`` (a relative path may not climb out of it with ``..``; links and
+    absolute paths are the user's own); without an extension the usual image ones are tried."""
     if not isinstance(rel, str) or not rel.strip():
         raise DataError(f"{where}: {key} is missing or not a string; give the image path relative to the json.")
     p = base / rel
+    if not Path(rel).is_absolute() and not Path(os.path.normpath(p)).is_relative_to(os.path.normpath(base)):
+        raise DataError(f"{where}: {key} {rel!r} leads outside the capture's folder {base}: the images and masks "
+                        "must lie inside it (a path that leaves it is refused); move the files into the folder or fix "
+                        "the path.")
     if p.is_file():
         return p
     tried = [p]

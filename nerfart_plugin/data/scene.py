@@ -25,6 +25,18 @@ from nerfart_plugin.errors import DataError
 
 CaptureType = Literal["object", "forward_facing", "unbounded"]
 
+#: the smallest image side (pixels) a capture can be reconstructed from (SSIM's 11 px window, 8 px tiles)
+MIN_IMAGE_SIDE = 16
+#: what a capture must satisfy to be reconstructed, checked by :meth:`Scene.validate` when any loader returns it
+RECONSTRUCTABLE = (
+    f"images at least {MIN_IMAGE_SIDE} px on each side (after data.resolution)",
+    "at least 2 views, at least 1 of them for training",
+    "masks, where a capture has them, not all empty",
+    "cameras at more than one position (a baseline)",
+    "for object and unbounded captures: at least half of the cameras facing the scene's centre",
+    "finite camera parameters, far > near for every camera, one name, pose and intrinsics per image",
+)
+
 
 @dataclass
 class Scene:
@@ -78,7 +90,8 @@ class Scene:
         return int(self.images.shape[2])
 
     def validate(self) -> "Scene":
-        """Check shapes and value ranges; raise DataError naming ``source`` on failure."""
+        """Check the contract and what a capture must satisfy to be reconstructed (the list in
+        :data:`RECONSTRUCTABLE`); raise DataError naming ``source`` and every problem found."""
 
         n, h, w, c = self.images.shape
         problems = []
@@ -96,6 +109,34 @@ class Scene:
             problems.append("non-finite camera parameters")
         if (self.far <= self.near).any():
             problems.append("far <= near for some camera")
+        if not problems:
+            problems = self.reconstructable_problems()
         if problems:
             raise DataError(f"Invalid scene from {self.source}: " + "; ".join(problems))
         return self
+
+    def reconstructable_problems(self) -> list[str]:
+        """What keeps this capture from being reconstructed (:data:`RECONSTRUCTABLE`), each with its fix."""
+        n, h, w, _ = self.images.shape
+        out = []
+        if min(h, w) < MIN_IMAGE_SIDE:
+            out.append(f"the images are {w}x{h} px; at least {MIN_IMAGE_SIDE} px a side are needed (data.resolution "
+                       "or larger photos)")
+        if n < 2 or not self.train_ids:
+            out.append(f"{n} view(s) with {len(self.train_ids)} for training: a reconstruction needs at least 2 views")
+        if self.masks is not None and float(self.masks.amax()) <= 0.0:
+            out.append("every mask is empty (an alpha channel or matte that is 0 everywhere): fix the mattes, or "
+                       "remove them to reconstruct without masks")
+        centres = self.c2w[:, :3, 3]
+        if n >= 2 and float(torch.cdist(centres, centres).max()) <= 1e-6 * max(1.0, float(centres.norm(dim=-1).max())):
+            out.append("every camera sits at the same place: without a baseline nothing can be triangulated; "
+                       "capture from several positions")
+        if self.capture != "forward_facing" and n >= 2:
+            # the object lies around the origin of the normalized frame: the cameras must face it
+            to_centre = -centres
+            forward = self.c2w[:, :3, 2]
+            facing = (torch.nn.functional.cosine_similarity(forward, to_centre, dim=-1) > 0.0).float().mean()
+            if float(facing) < 0.5:
+                out.append(f"only {float(facing):.0%} of the cameras face the scene's centre: the poses look away "
+                           "from the object (a flipped axis convention? check the poses' camera convention)")
+        return out
