@@ -17,6 +17,7 @@ plain override where Hydra 1.3 would refuse it (a key that already has a default
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 from pathlib import Path
 
@@ -102,7 +103,15 @@ def check_printed_config(argv: list[str]) -> None:
     parse_config(load_config([a for a in argv if "=" in a and not a.startswith(("-", "hydra."))]))
 
 
+def _terminate(signum: int, frame: object) -> None:
+    """SIGTERM (a scheduler's time limit, ``timeout``, ``kill``) outside training ends the run as Ctrl-C does: the
+    same message and exit code (in training, :class:`~nerfart_plugin.systems.callbacks.GracefulInterrupt` stops at the
+    end of the step first)."""
+    raise KeyboardInterrupt
+
+
 def main() -> None:
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         argv = normalize_overrides(sys.argv[1:])
         argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.config.plugins)

@@ -92,3 +92,18 @@ def test_the_preview_is_the_full_runs_start_and_shows_the_full_run_once_it_exist
     run(preview_cfg)  # reused: the picture is drawn again with the full run's views
     wide, has_full = picture()
     assert has_full and wide > narrow * 1.4
+
+
+@pytest.mark.slow
+def test_a_preview_without_a_reconstruction_says_it_trains_one_first(tmp_path, caplog):
+    from nerfart_plugin.run.pipeline import run
+
+    cfg = tiny_cfg(tmp_path, DEFAULT_SCENE, *TINY_STYLE, "stage=preview", "prompt=zebra", "preview.steps=1",
+                   "stylize.resolution=16")
+    with caplog.at_level("WARNING", logger="nerfart_plugin"):
+        run(cfg)
+    assert "a preview starts from the reconstruction of this capture, which is not made yet" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="nerfart_plugin"):
+        run(cfg)  # the reconstruction exists now: no such warning
+    assert "not made yet" not in caplog.text

@@ -548,3 +548,40 @@ def test_printing_the_config_validates_it_as_a_run_does(tmp_path, flag):
     assert bad.returncode == 2 and "did you mean render.num_samples" in bad.stdout + bad.stderr
     good = run_cli([f"output_root={tmp_path}", "render.num_samples=3", *flag])
     assert good.returncode == 0
+
+
+@pytest.mark.slow
+def test_sigterm_outside_training_ends_as_ctrl_c_does(tmp_path):
+    """SIGTERM while rendering (no training loop to stop gracefully): the same one-line RunInterrupted message and
+    exit code as Ctrl-C, no traceback."""
+    assert run_cli(cli_args(tmp_path, DEFAULT_SCENE, *RECON)).returncode == 0
+    recon = _recon_dir(tmp_path, *RECON)
+    log_file = tmp_path / "render.log"
+    with open(log_file, "w") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "nerfart_plugin", "stage=render", f"render.run={recon}",
+                                 "render.frames=2000", "render.resolution=32", f"output_root={tmp_path}",
+                                 f"hydra.run.dir={tmp_path}/hydra"], cwd=REPO, env=ENV, stdout=fh,
+                                stderr=subprocess.STDOUT)
+        deadline = time.time() + 240
+        while "rendering orbit" not in log_file.read_text() and proc.poll() is None and time.time() < deadline:
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=120)
+    out = log_file.read_text()
+    assert proc.returncode == RunInterrupted.exit_code, out[-2000:]
+    assert "RunInterrupted: interrupted" in out and "Traceback" not in out
+
+
+@pytest.mark.slow
+def test_two_exports_of_one_output_do_not_write_it_at_once(tmp_path):
+    """stage=export holds a lock on what it writes: a second export of the same run and strength waits (or, with
+    lock_timeout=0, stops naming the holder) instead of writing the same files at the same time."""
+    Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON)).run()
+    first = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON_SETTINGS, "stage=export")).run()["export"]
+    holder = _hold_lock(Path(first["mesh"]), 30.0)
+    try:
+        with pytest.raises(RunLockedError, match=rf"in use by process {holder.pid}"):
+            Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON_SETTINGS, "stage=export", "lock_timeout=0")).run()
+    finally:
+        holder.kill()
+        holder.wait()

@@ -214,8 +214,13 @@ class Pipeline:
     # ------------------------------------------------------------------ the steps of the plans
     def reconstruct_unless_given(self) -> None:
         """Stage 1, unless ``source_checkpoint`` names the reconstruction to start from."""
-        if not self.cfg.source_checkpoint:
-            self.reconstruct()
+        if self.cfg.source_checkpoint:
+            return
+        if self.cfg.stage == "preview" and not self.recon.folder.finished:
+            log.warning("a preview starts from the reconstruction of this capture, which is not made yet: it is "
+                        "trained first (once; every later preview and stylization reuses it), then the preview "
+                        "follows in about a minute")
+        self.reconstruct()
 
     def export_meshes(self) -> None:
         """``stage=export``: of ``mix.runs`` when given (no data needed), else :meth:`export`."""

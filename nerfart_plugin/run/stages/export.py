@@ -9,6 +9,7 @@ from typing import Any, Optional
 
 from nerfart_plugin.errors import NerfArtError
 from nerfart_plugin.export.splats import SplatFit, export_splats
+from nerfart_plugin.utils.lock import run_lock
 from nerfart_plugin.results.run import Run
 from nerfart_plugin.utils.io import atomic_write_json
 from nerfart_plugin.export.run_meshes import export_mesh
@@ -42,10 +43,12 @@ class ExportStage:
         run = blended_run(self.cfg, self.checkpoint) if blend else checkpoint_run(self.checkpoint, self.scene)
         ckpt = run.checkpoint
         stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{run.tag}"
-        mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
-        summary = {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)}
-        if self.cfg.export.splats:
-            summary["splats"] = self.splats(run, ckpt.parent / "splats" / f"{stem.name.replace('export-', 'splats-')}.ply")
+        with run_lock(stem, self.cfg.lock_timeout):  # two exports of one output: the second waits for the first
+            mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
+            summary = {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)}
+            if self.cfg.export.splats:
+                summary["splats"] = self.splats(run, ckpt.parent / "splats" /
+                                                f"{stem.name.replace('export-', 'splats-')}.ply")
         return StageResult(ckpt, summary)
 
     def splats(self, run: Run, path: Path) -> dict[str, Any]:
