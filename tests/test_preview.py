@@ -38,7 +38,7 @@ def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, ca
         again = run(cfg)["preview"]  # reused, scores reported again
     assert again["judge"] == judge
     assert metrics["verdict"]["verdict"] == "uncalibrated"  # the toy guide has no calibration
-    assert f"preview of 'zebra': uncalibrated (the verdict is calibrated for guidance=imagenet" in caplog.text
+    assert "preview of 'zebra': uncalibrated (the verdict is calibrated for guidance=imagenet" in caplog.text
     assert "the judge's P(zebra)" in caplog.text
 
 

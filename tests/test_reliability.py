@@ -512,7 +512,7 @@ def test_a_damaged_final_checkpoint_is_set_aside_and_the_run_redone(tmp_path, ca
     aside = list(folder.glob("final.ckpt.damaged-*"))
     assert len(aside) == 1 and aside[0].stat().st_size == len(healthy) // 2  # kept, not deleted
     assert Path(again["reconstruction"]["dir"]) == folder and final.is_file()
-    from nerfart_plugin.run.folders import checkpoint_damage
+    from nerfart_plugin.systems.checkpoints import checkpoint_damage
 
     assert checkpoint_damage(final) is None  # healthy again, with a fresh hash
 
@@ -585,3 +585,22 @@ def test_two_exports_of_one_output_do_not_write_it_at_once(tmp_path):
     finally:
         holder.kill()
         holder.wait()
+
+
+@pytest.mark.slow
+def test_every_reader_of_a_run_checks_its_checkpoint_as_reuse_does(tmp_path):
+    """render, export, mix, the viewer and open_run verify a run's final.ckpt against its stored hash, with the
+    message and the recovery of a reused run (one byte changed: the file still loads, the hash says otherwise)."""
+    from nerfart_plugin.api import open_run
+
+    cfg = tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON)
+    folder = Path(Pipeline(cfg).run()["reconstruction"]["dir"])
+    final = folder / "final.ckpt"
+    data = bytearray(final.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    final.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match=r"final.ckpt is damaged \(its content does not match final.ckpt.sha256"):
+        open_run(folder, device="cpu")
+    proc = run_cli([f"output_root={tmp_path}", "stage=render", f"render.run={folder}", "render.frames=2",
+                    f"hydra.run.dir={tmp_path}/hydra"])
+    assert proc.returncode == 2 and "is damaged" in proc.stdout + proc.stderr and "Traceback" not in proc.stderr

@@ -20,7 +20,7 @@ from nerfart_plugin.config.schema import RunConfig
 from nerfart_plugin.config.validate import parse_config
 from nerfart_plugin.data.datamodule import datamodule_of
 from nerfart_plugin.data.setup import SceneSetup
-from nerfart_plugin.errors import ConfigError, NerfArtError
+from nerfart_plugin.errors import CheckpointError, ConfigError, NerfArtError
 from nerfart_plugin.export import MeshExtractor
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.export.world_frame import mesh_in_frame
@@ -31,7 +31,7 @@ from nerfart_plugin.results.blend import (blend_tag, blended_renderer, check_str
                                           refresh_occupancy)
 from nerfart_plugin.results.record import RunRecord, migrate
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.checkpoints import META_KEY, load_checkpoint, prefixed_state
+from nerfart_plugin.systems.checkpoints import META_KEY, checkpoint_damage, load_checkpoint, prefixed_state
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.images import save_image
 from nerfart_plugin.utils.io import hash_files, slug
@@ -119,8 +119,9 @@ class Run:
         (:mod:`nerfart_plugin.results.blend`); a Run that renders, meshes and writes like any other."""
 
         if self.kind != "stylization" or self.weights != (1.0,):
-            raise NerfArtError(f"{self.folder}: with_strength needs a stylization as trained, not a "
-                               f"{'blend' if self.kind == 'stylization' else 'reconstruction'}.")
+            raise NerfArtError(f"{self.folder}: a strength (strength=, Run.with_strength) applies to a stylization as "
+                               f"trained, not to a {'blend' if self.kind == 'stylization' else 'reconstruction'}: give "
+                               "render.run= (or source_checkpoint=) a folder under outputs/stylizations/.")
         return mix([self], [check_strength(strength)])
 
     def with_region(self, region: Region) -> "Run":
@@ -128,8 +129,9 @@ class Run:
         everywhere else, without retraining: the composite at render time, at any strength
         (``run.with_region(r).with_strength(0.5)``). A Run that renders, meshes and writes like any other."""
         if self.kind != "stylization" or len(self.weights) != 1:
-            raise NerfArtError(f"{self.folder}: with_region needs a stylization (at any strength), not a "
-                               f"{'mix' if self.kind == 'stylization' else 'reconstruction'}.")
+            raise NerfArtError(f"{self.folder}: a region (region=, Run.with_region) applies to a stylization (at any "
+                               f"strength), not to a {'mix' if self.kind == 'stylization' else 'reconstruction'}: give "
+                               "render.run= (or source_checkpoint=) a folder under outputs/stylizations/.")
         if self.own is None and self.weights != (1.0,):
             raise NerfArtError(f"{self.folder}: apply the region first, then the strength: "
                                "run.with_region(region).with_strength(s).")
@@ -333,8 +335,14 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
     if folder.suffix == ".ckpt":
         folder, checkpoint = folder.parent, folder.name
     if not (folder / "config.yaml").is_file() or not (folder / checkpoint).is_file():
-        raise NerfArtError(f"{folder} is not a run folder with {checkpoint} (and config.yaml): point open_run at "
-                           "outputs/reconstructions/<run> or outputs/stylizations/<run>.")
+        raise NerfArtError(f"{folder} is not a run folder with {checkpoint} (and config.yaml): give render.run= "
+                           "(source_checkpoint=, mix.runs=, the viewer, open_run) a folder under "
+                           "outputs/reconstructions/ or outputs/stylizations/.")
+    why = checkpoint_damage(folder / checkpoint)
+    if why:  # checked as a reused run is: its stored hash, else that it loads
+        raise CheckpointError(f"{folder / checkpoint} is damaged ({why}). Run the command that made this run again: "
+                              "it sets the damaged file aside and trains again from the run's last.ckpt (nothing else "
+                              "in the folder is touched).")
     cfg = read_config(folder / "config.yaml")
     region = Region.load(folder / REGION_FILE) if (folder / REGION_FILE).is_file() else None
     renderer = read_renderer(folder / checkpoint, cfg)

@@ -26,7 +26,8 @@ import torch
 from nerfart_plugin.config.schema import TrainerConfig
 from nerfart_plugin.config.validate import section
 from nerfart_plugin.errors import NerfArtError, RunInterrupted
-from nerfart_plugin.run.folders import RunFolder, write_checkpoint_hash
+from nerfart_plugin.run.folders import RunFolder
+from nerfart_plugin.systems.checkpoints import write_checkpoint_hash
 from nerfart_plugin.systems.base import steps_loader
 from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt, ProjectedTime
 from nerfart_plugin.systems.checkpoints import allow_project_types

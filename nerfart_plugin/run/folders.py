@@ -30,40 +30,15 @@ from typing import Any, Callable, Optional, Sequence, TypeVar
 
 from omegaconf import OmegaConf
 
-from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
 from nerfart_plugin.results.run import Run, open_run
-from nerfart_plugin.systems.checkpoints import META_KEY, check_fits, load_checkpoint
-from nerfart_plugin.utils.io import atomic_write_text, file_sha256
+from nerfart_plugin.systems.checkpoints import HASH_SUFFIX, META_KEY, check_fits, checkpoint_damage, load_checkpoint
+from nerfart_plugin.utils.io import atomic_write_text
 from nerfart_plugin.utils.lock import run_lock
 
 log = logging.getLogger("nerfart_plugin")
 
 T = TypeVar("T")
 FINAL, LAST = "final.ckpt", "last.ckpt"
-HASH_SUFFIX = ".sha256"
-
-
-def write_checkpoint_hash(path: Path) -> None:
-    """``<path>.sha256``: the content hash a finished run is verified against before it is reused."""
-    atomic_write_text(Path(f"{path}{HASH_SUFFIX}"), file_sha256(path) + "\n")
-
-
-def checkpoint_damage(path: Path) -> Optional[str]:
-    """Why ``path`` (a finished run's ``final.ckpt``) cannot be trusted, or None when it is intact: its
-    stored hash differs, or (no hash stored) it does not load as a checkpoint. A file that would run code
-    when loaded is not damage: its :class:`~nerfart_plugin.errors.UnsafeCheckpointError` is raised."""
-
-    stored = Path(f"{path}{HASH_SUFFIX}")
-    if stored.is_file():
-        expected = stored.read_text().strip()
-        return None if file_sha256(path) == expected else f"its content does not match {stored.name}"
-    try:
-        load_checkpoint(path)
-    except UnsafeCheckpointError:
-        raise
-    except CheckpointError as exc:
-        return str(exc)
-    return None
 
 
 @dataclass(frozen=True)

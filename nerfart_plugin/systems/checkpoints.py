@@ -29,6 +29,7 @@ from pydantic import BaseModel
 from nerfart_plugin import __version__
 from nerfart_plugin.data.setup import SceneSetup
 from nerfart_plugin.errors import CheckpointError, UnsafeCheckpointError
+from nerfart_plugin.utils.io import atomic_write_text, file_sha256
 
 log = logging.getLogger(__name__)
 
@@ -155,3 +156,30 @@ def check_fits(module: torch.nn.Module, state: Mapping[str, torch.Tensor], path:
         if not isinstance(meta, Mapping):
             detail += "; it records no nerfart_plugin settings (another version or program)"
     raise CheckpointError(f"{path} does not fit this run: {detail}. {fix}")
+
+
+#: the suffix of the file beside a finished run's checkpoint holding its content hash
+HASH_SUFFIX = ".sha256"
+
+
+def write_checkpoint_hash(path: Path) -> None:
+    """``<path>.sha256``: the content hash a finished run is verified against before it is reused."""
+    atomic_write_text(Path(f"{path}{HASH_SUFFIX}"), file_sha256(path) + "\n")
+
+
+def checkpoint_damage(path: Path) -> Optional[str]:
+    """Why ``path`` (a finished run's ``final.ckpt``) cannot be trusted, or None when it is intact: its
+    stored hash differs, or (no hash stored) it does not load as a checkpoint. A file that would run code
+    when loaded is not damage: its :class:`~nerfart_plugin.errors.UnsafeCheckpointError` is raised."""
+
+    stored = Path(f"{path}{HASH_SUFFIX}")
+    if stored.is_file():
+        expected = stored.read_text().strip()
+        return None if file_sha256(path) == expected else f"its content does not match {stored.name}"
+    try:
+        load_checkpoint(path)
+    except UnsafeCheckpointError:
+        raise
+    except CheckpointError as exc:
+        return str(exc)
+    return None
