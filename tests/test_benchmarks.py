@@ -413,26 +413,27 @@ def test_step_split_quick(out: Path, shared_data: Path) -> None:
     assert all(float(r.split("|")[7]) > 0 for r in rows) and "Fused versus plain, same run" in sec
 
 
-def test_preview_report_ranks_both_predictors_and_the_fresh_prompts_alone():
-    """The preview study's verdicts: the judge gain, the guide's directional similarity over all prompts, and
-    over the prompts it was not picked on; a prompt in neither list counts as fresh."""
+def test_preview_report_tallies_the_verdict_against_the_full_runs():
+    """The preview study's report: each prompt's verdict (this commit's thresholds) against whether its full run
+    works (top-5 on >= 3 of 4 views), the prompts it gets wrong, the subject and time targets."""
+    from nerfart_plugin.run.stages.preview import CALIBRATION
+
     bench = _load("preview")
-    chosen, fresh = list(bench.CHOSEN_ON[:3]), ["strawberry", "snail", "pizza"]
-    full_gain = {p: g for p, g in zip(chosen + fresh, (0.1, 0.2, 0.3, 0.4, 0.5, 0.6))}
-    previews = [{"prompt": p, "gain": 0.6 - full_gain[p], "top5": 0.0, "directional": full_gain[p], "seconds": 50.0,
-                 "fit_s": 30.0} for p in chosen + fresh]
-    full = [{"prompt": p, "gain": g, "top5": 1.0, "seconds": 600.0} for p, g in full_gain.items()]
-    info = bench.common.machine_info()
-    text = bench.report({"previews": previews, "full": full, "override": []}, info, "cmd")
-    assert "judge gain with the full run's over 6 prompts (0 of them fail in the full run) >= 0.7: **NOT MET** " \
-           "(Spearman -1.00)" in text
-    assert "guide directional similarity with the full run's judge gain over 6 prompts >= 0.7: **MET** " \
-           "(Spearman 1.00" in text
-    assert "over the 3 fresh prompts alone (not seen when it was picked): **MET** (Spearman 1.00)" in text
-    assert "strawberry (fresh)" in text and f"{chosen[0]} (fresh)" not in text
-    old = [{k: v for k, v in p.items() if k != "directional"} for p in previews]  # a raw file from before the field
-    assert "guide directional" not in bench.report({"previews": old, "full": full}, info, "cmd").split(
-        "**Targets**")[1]
+    cal = CALIBRATION["imagenet"]
+    cases = {"a": (cal.likely + 0.05, 1.0), "b": (cal.likely + 0.01, 0.5), "c": (cal.unlikely - 0.05, 0.0),
+             "d": (cal.unlikely - 0.01, 1.0), "e": ((cal.likely + cal.unlikely) / 2, 1.0)}
+    previews = [{"prompt": k, "directional": d, "gain": 0.0, "top5": 0.0, "seconds": 50.0, "fit_s": 30.0,
+                 "silhouette_iou": 0.95, "steps": 16, "resolution": 256, "strength": 2.0,
+                 "resemblance": {"ssim_preview": 0.8, "ssim_source": 0.7, "feature_preview": 0.9, "feature_source": 0.8}
+                 if k == "a" else None} for k, (d, _) in cases.items()]
+    full = [{"prompt": k, "gain": 0.1, "top5": t, "seconds": 600.0} for k, (_, t) in cases.items()]
+    text = bench.report({"previews": previews, "full": full, "override": []}, bench.common.machine_info(), "cmd")
+    assert "2 of the 4 decided prompts right (likely to work: 1 right, 1 wrong; unlikely: 1 right, 1 wrong); " \
+           "1 uncertain; wrong: b, d" in text
+    assert "the subject kept (silhouette IoU with the source >= 0.9): **MET**" in text
+    assert "each preview <= 60 s from the command's start: **MET** (slowest 50 s)" in text
+    assert "closer to the full run than the source is, on both measures: 1 of 1" in text
+    assert "16 steps at 256 px" in text and "3 of the 5 prompts work in the full run" in text
 
 
 def test_preview_retime_replaces_the_times_and_refuses_a_changed_preview(tmp_path: Path, monkeypatch) -> None:
