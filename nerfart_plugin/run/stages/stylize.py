@@ -20,7 +20,8 @@ from nerfart_plugin.export.run_meshes import export_mesh, export_source_mesh, wr
 from nerfart_plugin.export.video import write_video
 from nerfart_plugin.guidance.style import Style, style_choices
 from nerfart_plugin.objectives.evaluation import (clip_scores, edge_similarity, evaluation_views, judge_prompt,
-    lost_subject, off_surface_share, region_metrics, silhouette_iou, style_image_metrics, view_consistency)
+    lost_subject, off_surface_share, region_metrics, silhouette_iou, view_consistency)
+from nerfart_plugin.objectives.style_distance import style_image_metrics
 from nerfart_plugin.rendering.frames import render_cameras
 from nerfart_plugin.run.factories import SceneContext, build_stylization_system, load_renderer_state, stylize_settings
 from nerfart_plugin.run.fit import FitResult, fit_stage
