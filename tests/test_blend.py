@@ -90,9 +90,9 @@ def test_strength_zero_is_the_source_one_is_the_run_and_beyond_gets_its_own_grid
     img = past.render(3)["rgb"]
     assert np.isfinite(img).all() and not np.array_equal(img, run.render(3)["rgb"])
     assert past.tag == "-s1.50" and zero.tag == "-s0.00" and one.tag == ""
-    with pytest.raises(NerfArtError, match="not a blend"):
+    with pytest.raises(NerfArtError, match="not to a blend"):
         past.with_strength(0.5)
-    with pytest.raises(NerfArtError, match="not a reconstruction"):
+    with pytest.raises(NerfArtError, match="not to a reconstruction"):
         run.source.with_strength(0.5)
     with pytest.raises(ConfigError, match="strength=2.5"):
         run.with_strength(2.5)
@@ -169,7 +169,8 @@ def test_mix_settings_are_checked_before_any_work():
 @pytest.mark.slow
 def test_a_run_records_what_each_auto_setting_became(styles):
     """The stylization's metrics.json names a concrete value for every setting that was ``auto`` in its config,
-    except the two that other outputs record (stage=render's resolution, a sweep's objective)."""
+    except those that other outputs record (stage=render's resolution, a sweep's objective, a preview's resolution,
+    the matched layers of a style picture, which this run has not)."""
     import json
 
     import yaml
@@ -181,7 +182,8 @@ def test_a_run_records_what_each_auto_setting_became(styles):
 
     run = styles["red"]
     block = json.loads((run / "metrics.json").read_text())["auto"]
-    was_auto = _auto_keys(yaml.safe_load((run / "config.yaml").read_text())) - {"render.resolution", "objective"}
+    was_auto = _auto_keys(yaml.safe_load((run / "config.yaml").read_text())) - {"render.resolution", "objective",
+                                                                            "preview.resolution", "style_image.layers"}
     assert set(block) == was_auto
     assert all(v is not None and v != "auto" for v in block.values()), block
     assert block["device"] == str(pick_device()) and block["trainer.strategy"] == "SingleDeviceStrategy"

@@ -355,12 +355,12 @@ class PreviewConfig(Section):
     """``preview``: ``stage=preview``, the first steps of the stylization a full run would make (same settings,
     same views, same schedule), shown through the strength dial, with a verdict on the prompt in words."""
 
-    steps: Int = Setting(16, ge=1, le=10_000, description="optimizer steps of the preview: the full run's first "
+    steps: Int = Setting(10, ge=1, le=10_000, description="optimizer steps of the preview: the full run's first "
                          "steps (one view each)")
     resolution: Union[Literal["auto"], Annotated[Int, Field(ge=16, le=1024)]] = Setting(
         "auto", description="long side (pixels) of the preview's views; auto: the full run's (stylize.resolution), "
         "so the preview is the full run's start")
-    strength: Float = Setting(2.0, ge=0.0, le=8.0, description="the strength the preview's views are shown at "
+    strength: Float = Setting(1.5, ge=0.0, le=2.0, description="the strength the preview's views are shown at "
                               "(the dial, applied to the preview's change): > 1 shows where the full run is heading")
 
 

@@ -25,8 +25,8 @@ from nerfart_plugin.errors import DataError
 
 CaptureType = Literal["object", "forward_facing", "unbounded"]
 
-#: the smallest image side (pixels) a capture can be reconstructed from (SSIM's 11 px window, 8 px tiles)
-MIN_IMAGE_SIDE = 16
+#: the smallest image side (pixels) a capture can be reconstructed from (SSIM's 11 px window fits inside)
+MIN_IMAGE_SIDE = 12
 #: what a capture must satisfy to be reconstructed, checked by :meth:`Scene.validate` when any loader returns it
 RECONSTRUCTABLE = (
     f"images at least {MIN_IMAGE_SIDE} px on each side (after data.resolution)",

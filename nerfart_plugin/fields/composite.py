@@ -28,6 +28,8 @@ from nerfart_plugin.fields.field import Field
 
 #: the per-sample keys a part's output is stored under inside the composite's output
 _SOURCE, _PART = "source.", "part{}."
+#: mask values this close to 0 or 1 are taken as exactly 0 or 1 (float error of the bilinear lookup)
+_SNAP = 1e-6
 
 
 class RegionMask(nn.Module):
@@ -79,6 +81,9 @@ class RegionMask(nn.Module):
         g = (x.float() / self.bound).reshape(1, -1, 1, 1, 3).to(self.masks.device)
         m = F.grid_sample(self.masks, g, mode="bilinear", padding_mode="zeros", align_corners=True)
         m = (m.reshape(2, -1) + self.outside).clamp(0, 1)
+        # bilinear weights of a cell whose corners are all 1 can sum to 1 - 1 ulp: snapped, so a sample wholly
+        # inside (or outside) a region is exactly the part's (the source's), with no trace of the other field
+        m = torch.where(m > 1.0 - _SNAP, torch.ones_like(m), torch.where(m < _SNAP, torch.zeros_like(m), m))
         return m[0].to(x.device), m[1].to(x.device)
 
 
