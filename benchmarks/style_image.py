@@ -33,7 +33,8 @@ from benchmarks import common
 ROOT = Path(__file__).resolve().parents[1]
 log = logging.getLogger("bench.style_image")
 NAME = "style_image"
-SETTINGS = ("guidance=imagenet",)
+#: the video and meshes are skipped: they change no trained result or measure
+SETTINGS = ("guidance=imagenet", "stylize.video_frames=0", "export.enabled=false")
 PROMPT = "brain coral"
 #: the picture of the text + picture run and of the layer ablation
 BOTH_PICTURE, ABLATION_PICTURE = "swirls", "hubble"
@@ -92,7 +93,7 @@ def picture(pictures: dict[str, Path], folders: dict[str, Path], both: Path) -> 
     return save_image(image_grid(rows, ncols=1), IMAGES / "style_image.png")
 
 
-def measure(root: Path, names: Sequence[str]) -> dict[str, Any]:
+def measure(root: Path, names: Sequence[str], ablation_runs: bool = True) -> dict[str, Any]:
     from nerfart_plugin.data.style_pictures import PICTURES, write_pictures
 
     pictures = write_pictures(root / "styles")
@@ -100,12 +101,13 @@ def measure(root: Path, names: Sequence[str]) -> dict[str, Any]:
     text = train(root, [f"+prompt={json.dumps(PROMPT)}"])
     both = train(root, [f"style_image.file={pictures[BOTH_PICTURE]}", f"+prompt={json.dumps(PROMPT)}"])
     ablation = {"+".join(layers): train(root, [f"style_image.file={pictures[ABLATION_PICTURE]}",
-                                               f"style_image.layers=[{','.join(layers)}]"]) for layers in ABLATION}
+                                               f"style_image.layers=[{','.join(layers)}]"])
+                for layers in (ABLATION if ablation_runs and ABLATION_PICTURE in names else ())}
     pic = picture(pictures, folders, both)
     return {"pictures": {n: {"file": str(pictures[n]), "origin": PICTURES[n][1]} for n in names},
             "runs": {n: row(f) for n, f in folders.items()}, "text": row(text), "both": row(both),
             "ablation": {"block1+block2 (auto)": row(folders[ABLATION_PICTURE]),
-                         **{k: row(f) for k, f in ablation.items()}},
+                         **{k: row(f) for k, f in ablation.items()}} if ablation else {},
             "picture": str(pic)}
 
 
@@ -138,12 +140,13 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
              f"{_closer(b, 'nnfm')}, Gram {_closer(b, 'gram')}, the judge's P({PROMPT}) "
              f"{common.fmt(judge.get('p_source'), '.3f')} -> {common.fmt(judge.get('p'), '.3f')} (top-5 on "
              f"{common.fmt(judge.get('top5'), '.0%')} of the views), silhouette IoU {b['silhouette_iou']:.3f}."]
-    body += ["", f"The matched layers, on {ABLATION_PICTURE}:", ""]
-    body += common.md_table(["Lite0 layers", "Gram distance", "NNFM distance", "colour EMD", "silhouette IoU",
-                             "fit (s)"],
-                            [[k, _closer(r, "gram"), _closer(r, "nnfm"),
-                              f"{r['style']['colour_emd_source']:.1f} -> {r['style']['colour_emd_stylized']:.1f}",
-                              f"{r['silhouette_iou']:.3f}", f"{r['fit_s']:.0f}"] for k, r in raw["ablation"].items()])
+    if raw["ablation"]:
+        body += ["", f"The matched layers, on {ABLATION_PICTURE}:", ""]
+        body += common.md_table(["Lite0 layers", "Gram distance", "NNFM distance", "colour EMD", "silhouette IoU",
+                                 "fit (s)"],
+                                [[k, _closer(r, "gram"), _closer(r, "nnfm"),
+                                  f"{r['style']['colour_emd_source']:.1f} -> {r['style']['colour_emd_stylized']:.1f}",
+                                  f"{r['silhouette_iou']:.3f}", f"{r['fit_s']:.0f}"] for k, r in raw["ablation"].items()])
     body += ["", "Pictures: " + "; ".join(f"{n}: {p['origin']}" for n, p in raw["pictures"].items()) + ".", "",
              f"![picture | source | stylized]({common.rel(Path(raw['picture']), ROOT)})"]
     return common.section(NAME, "Style from a picture", cmd, info, body, False)
@@ -153,11 +156,12 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out-root", type=Path, default=ROOT / "outputs" / "benchmarks" / "style_image")
     p.add_argument("--pictures", nargs="+", default=["hubble", "stain", "coffee", "retina", "swirls"])
+    p.add_argument("--no-ablation", action="store_true", help="skip the matched-layers ablation (three more runs)")
     common.add_raw_args(p)
     common.add_common_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
-    raw = common.raw_results(args, NAME, lambda: measure(args.out_root, args.pictures))
+    raw = common.raw_results(args, NAME, lambda: measure(args.out_root, args.pictures, not args.no_ablation))
     common.finish(args, NAME, report(raw, info, common.command("style_image.py", argv or sys.argv[1:])))
     return 0
 

@@ -92,6 +92,10 @@ def test_the_preview_is_the_full_runs_start_and_shows_the_full_run_once_it_exist
     run(preview_cfg)  # reused: the picture is drawn again with the full run's views
     wide, has_full = picture()
     assert has_full and wide > narrow * 1.4
+    dialed = Path(run(tiny_cfg(shared_runs, DEFAULT_SCENE, *base, "stage=preview", "preview.steps=3",
+                               "preview.strength=1.5"))["preview"]["preview"]).parent
+    assert dialed != preview and dialed.name.startswith(preview.name.split("_")[0]) and "-s1.50" in dialed.name
+    assert json.loads((dialed / "metrics.json").read_text())["strength"] == 1.5
 
 
 @pytest.mark.slow

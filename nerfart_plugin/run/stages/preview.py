@@ -94,6 +94,9 @@ class PreviewStage(StylizeStage):
                  live: Optional[LiveViewerFactory] = None) -> None:
         self.full_run = StylizeStage(scene, style, source, source_keys).folder  # the run this previews
         super().__init__(preview_scene(scene), style, source, source_keys, live)
+        # the dial changes the views shown, not the training: a preview at another strength is another folder
+        tag, stamp = ("" if self.strength == 1.0 else f"-s{self.strength:.2f}"), style.stamp
+        self.names = [f"{n[:len(n) - len(stamp)]}{tag}{stamp}" for n in self.names]
         self.folder = RunFolder.find(scene.root / "previews", self.names, "preview")
 
     @property
