@@ -180,21 +180,25 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     slow = max(p["seconds"] for p in previews)
     ious = [p["silhouette_iou"] for p in previews]
     resembling = [p["resemblance"] for p in previews if p.get("resemblance")]
-    body += ["", f"**The verdict** (thresholds on the guide's directional similarity: likely >= {cal.likely:.2f}, "
-             f"unlikely < {cal.unlikely:.2f}, uncertain between): {right} of the {decided} decided prompts right "
+    body += ["", f"**The verdict** (thresholds on the guide's directional similarity: likely >= {cal.likely:.3f}, "
+             f"unlikely < {cal.unlikely:.3f}, uncertain between): {right} of the {decided} decided prompts right "
              f"(likely to work: {tally['likely'][0]} right, {tally['likely'][1]} wrong; unlikely: "
              f"{tally['unlikely'][0]} right, {tally['unlikely'][1]} wrong); {tally['uncertain']} uncertain"
              + (f"; wrong: {', '.join(tally['wrong'])}" if tally["wrong"] else "") + ". The thresholds were read off "
-             "these same prompts, so this is the accuracy on the prompts they were set on.",
+             "these same prompts, so this is the accuracy on the prompts they were set on; for scale, saying "
+             f"\"likely\" of every prompt would be right on {n_work} of {len(previews)}.",
              "", f"- the subject kept (silhouette IoU with the source >= 0.9): **{'MET' if min(ious) >= 0.9 else 'NOT MET'}** "
-             f"(lowest {min(ious):.3f})",
+             f"({sum(i >= 0.9 for i in ious)} of {len(ious)}; below: "
+             + (", ".join(f"{p['prompt']} {p['silhouette_iou']:.2f}" for p in previews if p["silhouette_iou"] < 0.9)
+                or "none") + ")",
              f"- each preview <= {TARGET_S:.0f} s from the command's start: **{'MET' if slow <= TARGET_S else 'NOT MET'}** "
-             f"(slowest {slow:.0f} s)"]
+             f"(slowest {slow:.0f} s, median {sorted(p['seconds'] for p in previews)[len(previews) // 2]:.0f} s; "
+             f"{sum(p['seconds'] <= TARGET_S for p in previews)} of {len(previews)} within)"]
     if resembling:
-        closer = sum(r["ssim_preview"] > r["ssim_source"] and r["feature_preview"] > r["feature_source"]
-                     for r in resembling)
-        body.append(f"- closer to the full run than the source is, on both measures: {closer} of {len(resembling)} "
-                    "prompts with a full run on this machine")
+        by_ssim = sum(r["ssim_preview"] > r["ssim_source"] for r in resembling)
+        by_features = sum(r["feature_preview"] > r["feature_source"] for r in resembling)
+        body.append(f"- closer to the full run than the source is, of the {len(resembling)} prompts with a full run "
+                    f"on this machine: in the judge's features {by_features}, in SSIM {by_ssim}")
     body += ["", *raw.get("notes", [])]
     return common.section(NAME, "The preview: does it look like the full run, and is its verdict right?", cmd, info,
                           body, False)

@@ -62,7 +62,11 @@ def test_the_verdict_reads_the_calibrated_thresholds():
     out = verdict(0.3, "clip")
     assert out["verdict"] == "uncalibrated" and out["score"] == 0.3 and "guidance=imagenet" in out["why"]
     assert verdict(None, "imagenet")["verdict"] == "uncalibrated"
-    assert f"{cal.likely:.2f}" in verdict(0.9, "imagenet")["why"]
+    assert f"{cal.likely:.3f}" in verdict(0.9, "imagenet")["why"]
+    assert verdict(0.9, "imagenet", cal.steps, cal.strength)["verdict"] == "likely to work"
+    other = verdict(0.9, "imagenet", cal.steps + 5, cal.strength)
+    assert other["verdict"] == "uncalibrated" and f"preview.steps={cal.steps}" in other["why"]
+    assert verdict(0.9, "imagenet", cal.steps, 1.0)["verdict"] == "uncalibrated"
 
 
 @pytest.mark.slow
