@@ -38,7 +38,7 @@ NAME = "splats"
 PROMPT = "brain coral"
 SETTINGS = ("guidance=imagenet",)
 #: (Gaussians, steps); the last is the default of export.splat_count / export.splat_steps
-BUDGETS = ((10000, 500), (20000, 1000), (40000, 1500))
+BUDGETS = ((40000, 1500), (20000, 1000), (10000, 500))
 #: --quick: a tiny head, two small budgets (a smoke test of the benchmark, not a measurement)
 QUICK_SETTINGS = ("data.resolution=32", "reconstruct.steps=60", "stylize.steps=3", "stylize.video_frames=2",
                   "export.resolution=32", "export.texture=false", "render.num_samples=16")

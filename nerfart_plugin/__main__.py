@@ -92,15 +92,30 @@ def check_output_root(argv: list[str]) -> None:
         check_writable_dir(root, "output_root", create=False)
 
 
-def check_printed_config(argv: list[str]) -> None:
-    """With ``--cfg`` (job, hydra, all) the config Hydra prints is validated as a run's would be: a typo or a bad
-    value is a ConfigError (exit 2), not a printed config and exit 0."""
-    if not any(a in ("--cfg", "-c") or a.startswith("--cfg=") for a in argv):
+#: flags of a sweep: its overrides hold value lists that only the sweeper expands
+_SWEEP_FLAGS = ("-m", "--multirun")
+#: flags with which Hydra prints help or information and runs nothing
+_HELP_FLAGS = tuple(f for f in _NO_JOB_FLAGS if f not in ("--cfg", "-c"))
+
+
+def check_settings(argv: list[str]) -> None:
+    """The command's settings validated before the training stack loads (a typo or a bad value answers in about a
+    second, exit 2); with ``--cfg`` (job, hydra, all) the config Hydra would print is validated too, so that a typo
+    is not printed with exit 0. Sweeps are left to the sweep's own checks; anything that fails to compose here
+    for another reason is left to Hydra's own message."""
+    printing = any(a in ("--cfg", "-c") or a.startswith("--cfg=") for a in argv)
+    if not printing and any(a in _SWEEP_FLAGS + _HELP_FLAGS for a in argv):
         return
+    from hydra.errors import HydraException
+
     from nerfart_plugin.config.compose import load_config
     from nerfart_plugin.config.validate import parse_config
 
-    parse_config(load_config([a for a in argv if "=" in a and not a.startswith(("-", "hydra."))]))
+    try:
+        cfg = load_config([a for a in argv if "=" in a and not a.startswith(("-", "hydra."))])
+    except HydraException:
+        return
+    parse_config(cfg)
 
 
 def _terminate(signum: int, frame: object) -> None:
@@ -116,7 +131,7 @@ def main() -> None:
         argv = normalize_overrides(sys.argv[1:])
         argv += searchpath_overrides(argv)  # config groups of installed plugins (nerfart_plugin.config.plugins)
         check_output_root(argv)
-        check_printed_config(argv)
+        check_settings(argv)
     except ConfigError as exc:  # before Hydra configures logging: Python's last-resort handler prints it to stderr
         log.error("ConfigError: %s", exc)
         sys.exit(2)

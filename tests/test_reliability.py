@@ -604,3 +604,31 @@ def test_every_reader_of_a_run_checks_its_checkpoint_as_reuse_does(tmp_path):
     proc = run_cli([f"output_root={tmp_path}", "stage=render", f"render.run={folder}", "render.frames=2",
                     f"hydra.run.dir={tmp_path}/hydra"])
     assert proc.returncode == 2 and "is damaged" in proc.stdout + proc.stderr and "Traceback" not in proc.stderr
+
+
+#: (module, arguments, what the one-line answer names): a bad argument to each entry point
+BAD_ARGUMENTS = [
+    ("nerfart_plugin", ["bogus_key=3"], "bogus_key=3: unknown setting"),
+    ("nerfart_plugin", ["render.num_samples=banana"], "render.num_samples='banana'"),
+    ("nerfart_plugin", ["--bogus"], "unrecognized arguments: --bogus"),
+    ("nerfart_plugin.viewer", ["somewhere", "--bogus"], "unrecognized arguments: --bogus"),
+    ("nerfart_plugin.viewer", ["/nonexistent/run"], "/nonexistent/run does not exist"),
+    ("nerfart_plugin.viewer", ["/nonexistent/run", "--port", "70000"], "--port 70000"),
+    ("nerfart_plugin.viewer.mesh", ["/nonexistent/mesh.ply"], "/nonexistent/mesh.ply"),
+    ("nerfart_plugin.data.download", ["nosuch"], "no sample named 'nosuch'"),
+    ("nerfart_plugin.data.style_pictures", ["nosuch"], "no picture nosuch"),
+    ("benchmarks", ["nosuch"], "no benchmark 'nosuch'"),
+    ("benchmarks", ["preview", "--bogus"], "unrecognized arguments: --bogus"),
+]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("module,args,named", BAD_ARGUMENTS, ids=[f"{m} {' '.join(a)}" for m, a, _ in BAD_ARGUMENTS])
+def test_every_entry_point_answers_a_bad_argument_with_one_line_and_exit_2(tmp_path, module, args, named):
+    """Exit 2 and a line naming what is wrong, no traceback, never a hang (the timeout is a hang guard only)."""
+    extra = [f"output_root={tmp_path}", f"hydra.run.dir={tmp_path}/hydra"] if module == "nerfart_plugin" else []
+    proc = subprocess.run([sys.executable, "-m", module, *args, *extra], cwd=REPO, capture_output=True, text=True,
+                          timeout=300)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2, out[-2000:]
+    assert named in out and "Traceback" not in out, out[-2000:]

@@ -249,9 +249,9 @@ class ExportConfig(Section):
                                  "detail; the plain mesh files keep every triangle); 0: no decimation")
     splats: bool = Setting(False, description="stage=export: also fit the field as 3D Gaussian splats and write "
                            "them as a 3DGS .ply (splats/<name>.ply, export.frame's frame) that splat viewers open")
-    splat_count: Int = Setting(40000, ge=100, le=10**7, description="Gaussians of the splat export",
+    splat_count: Int = Setting(10000, ge=100, le=10**7, description="Gaussians of the splat export",
                                off="export.splats=false writes no splats")
-    splat_steps: Int = Setting(1500, ge=0, le=10**6, description="optimizer steps fitting the splats to the field's "
+    splat_steps: Int = Setting(500, ge=0, le=10**6, description="optimizer steps fitting the splats to the field's "
                                "renders (0: the surface initialization as it is)")
     splat_resolution: Int = Setting(128, ge=16, le=2048, description="long side (pixels) of the field's renders the "
                                     "splats are fitted to")

@@ -61,8 +61,8 @@ class SplatFit:
         rendered per step; seed: of the initialization and the order of views.
     """
 
-    count: int = 40000
-    steps: int = 1500
+    count: int = 10000
+    steps: int = 500
     resolution: int = 128
     orbit_views: int = 24
     tile_share: float = 0.25

@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 import time
+from pathlib import Path
 from typing import Sequence
 
 from nerfart_plugin.errors import NerfArtError
@@ -32,6 +33,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         p.exit(2, f"error: --port {args.port}: give a port from 1 to 65535 (0: any free port).\n")
     if args.max_side < 16:
         p.exit(2, f"error: --max-side {args.max_side}: give at least 16 pixels.\n")
+    if not Path(args.run).exists():  # answered before the training stack loads
+        p.exit(2, f"error: {args.run} does not exist: give a run folder (outputs/reconstructions/<run> or "
+                  "outputs/stylizations/<run>) or a .ckpt in one.\n")
     from nerfart_plugin.viewer import open_viewer
 
     try:
