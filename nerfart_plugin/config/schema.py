@@ -425,7 +425,7 @@ class StyleImageConfig(Section):
     file: Optional[PathText] = Setting(None, description="a PNG or JPEG whose style to follow (any size; 16-bit, "
                                        "grayscale and RGBA are read; transparency shows white); runs are keyed by "
                                        "its content, not its path", changes_results=False)
-    lambda_style: Float = Setting(1.0, ge=0.0, le=1e4, description="weight of the nearest-neighbour feature "
+    lambda_style: Float = Setting(10.0, ge=0.0, le=1e4, description="weight of the nearest-neighbour feature "
                                   "matching to the picture (ARF's NNFM); 0: off")
     lambda_palette: Float = Setting(1.0, ge=0.0, le=1e4, description="weight of the pull of the colours toward the "
                                     "source views recoloured to the picture's palette (histogram matching); 0: off")
