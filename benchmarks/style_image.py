@@ -133,7 +133,8 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     closer = all(r["style"]["nnfm_stylized"] < r["style"]["nnfm_source"] and r["style"]["gram_stylized"]
                  < r["style"]["gram_source"] for r in raw["runs"].values())
     body += ["", f"Closer to the picture on both measures for every picture: **{'yes' if closer else 'no'}**. "
-             f"The text run's fit: {text_s:.0f} s."]
+             f"The text run's fit: {text_s:.0f} s (where the root already held that run, as here, "
+             "its time is from when it was trained: the ratios compare two moments of a shared machine)."]
     b = raw["both"]
     judge = b.get("judge") or {}
     body += ["", f"A picture and a prompt together (`+style_image={BOTH_PICTURE}.png +prompt=\"{PROMPT}\"`): NNFM "
