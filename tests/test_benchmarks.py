@@ -431,8 +431,8 @@ def test_preview_report_tallies_the_verdict_against_the_full_runs():
     assert "2 of the 4 decided prompts right (likely to work: 1 right, 1 wrong; unlikely: 1 right, 1 wrong); " \
            "1 uncertain; wrong: b, d" in text
     assert "the subject kept (silhouette IoU with the source >= 0.9): **MET**" in text
-    assert "each preview <= 60 s from the command's start: **MET** (slowest 50 s)" in text
-    assert "closer to the full run than the source is, on both measures: 1 of 1" in text
+    assert "each preview <= 60 s from the command's start: **MET** (slowest 50 s, median 50 s; 5 of 5 within)" in text
+    assert "of the 1 prompts with a full run on this machine: in the judge's features 1, in SSIM 1" in text
     assert "16 steps at 256 px" in text and "3 of the 5 prompts work in the full run" in text
 
 

@@ -177,11 +177,18 @@ def test_sweep_of_free_text_prompts_runs_one_job_per_prompt(tmp_path):
 
 def test_runs_started_in_the_same_second_keep_their_own_hydra_folders(tmp_path):
     """Each run's ``.hydra/overrides.yaml`` survives: the run folder's name goes down to microseconds."""
-    for batch in ("abc", "xyz"):  # both stop at validation, after Hydra wrote the folder
-        assert _cli(f"output_root={tmp_path}", "stage=reconstruct", f"reconstruct.batch_rays={batch}").returncode == 2
+    for name in ("abc", "xyz"):  # both stop in the stage (no such run), after Hydra wrote the folder
+        assert _cli(f"output_root={tmp_path}", "stage=render", f"render.run={tmp_path}/{name}").returncode == 2
     folders = sorted((tmp_path / "hydra").iterdir())
     assert len(folders) == 2
-    assert ["batch_rays=abc" in (f / ".hydra" / "overrides.yaml").read_text() for f in folders] == [True, False]
+    assert ["/abc" in (f / ".hydra" / "overrides.yaml").read_text() for f in folders] == [True, False]
+
+
+def test_a_bad_setting_is_refused_before_hydra_writes_anything(tmp_path):
+    """A typo or a bad value stops the command before the training stack loads: exit 2, no run folder."""
+    proc = _cli(f"output_root={tmp_path}", "stage=reconstruct", "reconstruct.batch_rays=abc")
+    assert proc.returncode == 2 and "reconstruct.batch_rays" in proc.stdout + proc.stderr
+    assert not (tmp_path / "hydra").exists()
 
 
 def test_cli_non_ascii_and_quote_prompts():
