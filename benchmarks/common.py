@@ -263,6 +263,17 @@ def compose(overrides: Sequence[str]) -> dict[str, Any]:
     return OmegaConf.to_container(cfg, resolve=True)  # type: ignore[return-value]
 
 
+def trained_run(root: Path, overrides: Sequence[str]) -> Path:
+    """The folder of the run ``overrides`` name in ``root`` (as the CLI takes them), trained or reused: the
+    stylization where the command makes one, else the reconstruction (``stage=reconstruct``)."""
+    from nerfart_plugin.config.compose import load_config
+    from nerfart_plugin.config.overrides import normalize_overrides
+    from nerfart_plugin.run.pipeline import run
+
+    result = run(load_config(normalize_overrides([f"output_root={root}", *overrides])))
+    return Path((result.get("stylization") or result["reconstruction"])["dir"])
+
+
 def shared_data() -> Path:
     """``../shared/data`` next to the repository (or $NERFART_SHARED_DATA)."""
     return Path(os.environ.get("NERFART_SHARED_DATA", ROOT.parent / "shared" / "data")).resolve()

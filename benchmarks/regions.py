@@ -81,12 +81,8 @@ def region_boxes(source: Any) -> dict[str, Any]:
 # ---------------------------------------------------------------------- training
 def train(root: Path, prompt: str, region_file: Path | None) -> Path:
     """The stylization of ``prompt`` (inside ``region_file``; None: the whole scene), trained or reused."""
-    from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.run.pipeline import run
-
-    overrides = [f"output_root={root}", *SETTINGS, f"+prompt={json.dumps(prompt)}"]
-    cfg = load_config(overrides + ([f"region={region_file}"] if region_file is not None else []))
-    return Path(run(cfg)["stylization"]["dir"])
+    region = [f"region={region_file}"] if region_file is not None else []
+    return common.trained_run(root, [*SETTINGS, f"+prompt={json.dumps(prompt)}", *region])
 
 
 # ---------------------------------------------------------------------- measuring
@@ -306,10 +302,8 @@ def picture(prompts: Sequence[str], folders: dict[str, dict[str, Path]], view: i
 # ---------------------------------------------------------------------- the report
 def measure(root: Path, prompts: Sequence[str]) -> dict[str, Any]:
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.run.pipeline import run
 
-    recon = Path(run(load_config([f"output_root={root}", *SETTINGS, "stage=reconstruct"]))["reconstruction"]["dir"])
+    recon = common.trained_run(root, [*SETTINGS, "stage=reconstruct"])
     geometry = region_boxes(open_run(recon, device="cpu"))
     regions = geometry.pop("regions")
     files = {name: region.save(root / "regions" / f"{name}.npz") for name, region in regions.items()}

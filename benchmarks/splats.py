@@ -48,13 +48,8 @@ IMAGES = ROOT / "docs" / "images"
 
 def train(root: Path, prompt: str | None, quick: bool = False) -> Path:
     """The reconstruction (``prompt`` None) or the stylization of ``prompt``, trained or reused."""
-    from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.run.pipeline import run
-
-    base = [f"output_root={root}", *SETTINGS, *(QUICK_SETTINGS if quick else ())]
-    if prompt is None:
-        return Path(run(load_config([*base, "stage=reconstruct"]))["reconstruction"]["dir"])
-    return Path(run(load_config([*base, f"+prompt={json.dumps(prompt)}"]))["stylization"]["dir"])
+    what = ["stage=reconstruct"] if prompt is None else [f"+prompt={json.dumps(prompt)}"]
+    return common.trained_run(root, [*SETTINGS, *(QUICK_SETTINGS if quick else ()), *what])
 
 
 # ---------------------------------------------------------------------- the bounds

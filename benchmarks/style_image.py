@@ -45,12 +45,7 @@ IMAGES = ROOT / "docs" / "images"
 
 def train(root: Path, extra: Sequence[str]) -> Path:
     """The stylization of ``extra`` (a picture, a prompt or both), trained or reused."""
-    from nerfart_plugin.config.compose import load_config
-    from nerfart_plugin.config.overrides import normalize_overrides
-    from nerfart_plugin.run.pipeline import run
-
-    cfg = load_config(normalize_overrides([f"output_root={root}", *SETTINGS, *extra]))
-    return Path(run(cfg)["stylization"]["dir"])
+    return common.trained_run(root, [*SETTINGS, *extra])
 
 
 def row(folder: Path) -> dict[str, Any]:

@@ -375,8 +375,8 @@ class MixConfig(Section):
                                        "out, 1: all of it)", changes_results=False)
 
 
-def _region_file(value: Any) -> Any:
-    """``region=<file>``: a region file, the shorthand of ``region.file=<file>``."""
+def _file_shorthand(value: Any) -> Any:
+    """``region=<file>`` / ``style_image=<file>``: a file alone, the shorthand of ``<section>.file=<file>``."""
     return {"file": value} if isinstance(value, (str, Path)) else value
 
 
@@ -409,11 +409,6 @@ class RegionConfig(Section):
     def given(self) -> bool:
         """A region is asked for (a file or a shape)."""
         return any(v is not None for v in (self.file, self.box, self.ellipsoid))
-
-
-def _style_image_file(value: Any) -> Any:
-    """``style_image=<file>``: a picture, the shorthand of ``style_image.file=<file>``."""
-    return {"file": value} if isinstance(value, (str, Path)) else value
 
 
 class StyleImageConfig(Section):
@@ -485,8 +480,8 @@ class RunConfig(Section):
                               "the style's strength without retraining (0: the source, 1: as trained, 2: twice its "
                               "change; outputs named -s<strength>)", changes_results=False)
     mix: MixConfig = Field(default_factory=MixConfig)
-    region: Annotated[RegionConfig, BeforeValidator(_region_file)] = Field(default_factory=RegionConfig)
-    style_image: Annotated[StyleImageConfig, BeforeValidator(_style_image_file)] = Field(
+    region: Annotated[RegionConfig, BeforeValidator(_file_shorthand)] = Field(default_factory=RegionConfig)
+    style_image: Annotated[StyleImageConfig, BeforeValidator(_file_shorthand)] = Field(
         default_factory=StyleImageConfig)
     preview: PreviewConfig = Field(default_factory=PreviewConfig)
     viewer: ViewerConfig = Field(default_factory=ViewerConfig)

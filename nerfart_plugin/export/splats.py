@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import logging
 import math
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
@@ -41,6 +40,7 @@ from nerfart_plugin.export.mesh import MeshExtractor
 from nerfart_plugin.objectives.losses import psnr
 from nerfart_plugin.rendering.splats import (C0, Splats, gsplat_available, quat_to_rotmat, rasterize,
                                              rasterize_gsplat, rasterize_tiles, rotmat_to_quat, tile_pixels)
+from nerfart_plugin.utils.clock import PartClock
 from nerfart_plugin.utils.io import atomic_path
 
 log = logging.getLogger("nerfart_plugin")
@@ -250,18 +250,23 @@ def read_ply(path: Path) -> Splats:
 def export_splats(run: Any, path: Path, cfg: SplatFit, frame: str = "world") -> dict[str, Any]:
     """Fit ``run``'s field (any Run: a blend, a region) as splats and write them to ``path``: what was fitted and
     how well (PSNR / SSIM against the field on the capture's held-out views), for ``metrics.json``."""
-    clock = _Clock()
+    clock = PartClock()
     torch.manual_seed(cfg.seed)
     field_ = run.renderer.field
-    splats = clock("initialization", initial_splats, field_, cfg.count, cfg.seed)
+    with clock.part("initialization"):
+        splats = initial_splats(field_, cfg.count, cfg.seed)
     ids = run.cameras.train_ids or list(range(len(run.cameras.c2w)))
     held = [i for i in range(len(run.cameras.c2w)) if i not in set(ids)] or ids[:4]
-    views = clock("field renders", field_views, run, ids, cfg.orbit_views, cfg.resolution)
-    held_views = clock("field renders", field_views, run, held, 0, cfg.resolution)
+    with clock.part("field renders"):
+        views = field_views(run, ids, cfg.orbit_views, cfg.resolution)
+        held_views = field_views(run, held, 0, cfg.resolution)
     background = field_background(run)
-    start = clock("quality", splat_quality, splats, held_views, background)
-    fitted, curve = clock("fit", fit_splats, splats, views, cfg, background, torch.device(run.device))
-    quality = clock("quality", splat_quality, fitted, held_views, background)
+    with clock.part("quality"):
+        start = splat_quality(splats, held_views, background)
+    with clock.part("fit"):
+        fitted, curve = fit_splats(splats, views, cfg, background, torch.device(run.device))
+    with clock.part("quality"):
+        quality = splat_quality(fitted, held_views, background)
     out = to_world(fitted.to("cpu"), run.cameras.normalization) if frame == "world" else fitted.to("cpu")
     write_ply(out, path)
     seconds = clock.total()
@@ -271,25 +276,8 @@ def export_splats(run: Any, path: Path, cfg: SplatFit, frame: str = "world") -> 
     return {"file": str(path), "gaussians": len(fitted), "steps": cfg.steps, "resolution": cfg.resolution,
             "frame": frame, "psnr": quality["psnr"], "ssim": quality["ssim"], "psnr_initial": start["psnr"],
             "ssim_initial": start["ssim"], "views": quality["views"], "seconds": round(seconds, 1),
-            "seconds_by_part": {k: round(v, 1) for k, v in clock.parts.items()},
+            "seconds_by_part": {k: round(v, 1) for k, v in clock.seconds.items()},
             "bytes": Path(path).stat().st_size, "final_loss": curve[-1] if curve else None}
-
-
-class _Clock:
-    """Seconds spent per named part of a job."""
-
-    def __init__(self) -> None:
-        self.parts: dict[str, float] = {}
-        self.t0 = time.perf_counter()
-
-    def __call__(self, part: str, fn: Any, *args: Any) -> Any:
-        t = time.perf_counter()
-        out = fn(*args)
-        self.parts[part] = self.parts.get(part, 0.0) + time.perf_counter() - t
-        return out
-
-    def total(self) -> float:
-        return time.perf_counter() - self.t0
 
 
 def field_background(run: Any) -> Tensor:

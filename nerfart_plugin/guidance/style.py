@@ -82,13 +82,15 @@ def build_style(cfg: Any, guidance: Any = None, perceptual: Any = None) -> Style
         raise ConfigError("a stylization needs a style: add +prompt=\"Vincent van Gogh\" or +style_image=<picture.png> "
                           "(or both).")
     image = StyleImage.load(c.style_image.file, c.style_image.size) if c.style_image.given else None
-    if c.prompt is not None:
-        guidance = guidance if guidance is not None else build_guidance(g)
+    if c.prompt is None:  # a picture alone needs no guide
+        guidance = None
+    elif guidance is None:
+        guidance = build_guidance(g)
     perceptual = perceptual if perceptual is not None else build_perceptual(g)
     features = style_features(c) if image is not None else None
     nets = [n for n in (guidance, perceptual, features) if n is not None]
     real = all(getattr(n, "is_real", True) for n in nets)
-    own_stamp = guidance.output_stamp() if c.prompt is not None else ""
+    own_stamp = guidance.output_stamp() if guidance is not None else ""
     stamp = own_stamp or ("" if real else f"_UNSTYLED-{g.name}")
     if not real:
         log.warning("guidance is not a real pretrained model (%s): every output is stamped %r", g.name, stamp)
@@ -97,8 +99,7 @@ def build_style(cfg: Any, guidance: Any = None, perceptual: Any = None) -> Style
     if prompt != raw:
         log.info("prompt augmented: %r -> %r", raw, prompt)
     src = c.source_prompt if c.source_prompt != "auto" else default_source_prompt(getattr(c.data, "subject", None) or "object")
-    return Style(guidance if c.prompt is not None else None, perceptual, real, stamp, raw, prompt, src, image=image,
-                 features=features)
+    return Style(guidance, perceptual, real, stamp, raw, prompt, src, image=image, features=features)
 
 
 def check_style(style: Style, negatives: str) -> None:

@@ -31,7 +31,7 @@ from nerfart_plugin.results.blend import (blend_tag, blended_renderer, check_str
                                           refresh_occupancy)
 from nerfart_plugin.results.record import RunRecord, migrate
 from nerfart_plugin.systems.base import build_renderer
-from nerfart_plugin.systems.checkpoints import META_KEY, checkpoint_damage, load_checkpoint, prefixed_state
+from nerfart_plugin.systems.checkpoints import META_KEY, hash_mismatch, load_checkpoint, prefixed_state
 from nerfart_plugin.utils.device import pick_device
 from nerfart_plugin.utils.images import save_image
 from nerfart_plugin.utils.io import hash_files, slug
@@ -338,8 +338,8 @@ def open_run(folder: Union[str, Path], checkpoint: str = "final.ckpt", device: s
         raise NerfArtError(f"{folder} is not a run folder with {checkpoint} (and config.yaml): give render.run= "
                            "(source_checkpoint=, mix.runs=, the viewer, open_run) a folder under "
                            "outputs/reconstructions/ or outputs/stylizations/.")
-    why = checkpoint_damage(folder / checkpoint)
-    if why:  # checked as a reused run is: its stored hash, else that it loads
+    why = hash_mismatch(folder / checkpoint)
+    if why:  # without a stored hash, read_renderer's load below is the check
         raise CheckpointError(f"{folder / checkpoint} is damaged ({why}). Run the command that made this run again: "
                               "it sets the damaged file aside and trains again from the run's last.ckpt (nothing else "
                               "in the folder is touched).")

@@ -27,10 +27,9 @@ from nerfart_plugin.config.schema import TrainerConfig
 from nerfart_plugin.config.validate import section
 from nerfart_plugin.errors import NerfArtError, RunInterrupted
 from nerfart_plugin.run.folders import RunFolder
-from nerfart_plugin.systems.checkpoints import write_checkpoint_hash
 from nerfart_plugin.systems.base import steps_loader
 from nerfart_plugin.systems.callbacks import AtomicCheckpoint, GracefulInterrupt, ProjectedTime
-from nerfart_plugin.systems.checkpoints import allow_project_types
+from nerfart_plugin.systems.checkpoints import allow_project_types, write_checkpoint_hash
 from nerfart_plugin.systems.loggers import build_loggers
 
 log = logging.getLogger("nerfart_plugin")

@@ -167,15 +167,22 @@ def write_checkpoint_hash(path: Path) -> None:
     atomic_write_text(Path(f"{path}{HASH_SUFFIX}"), file_sha256(path) + "\n")
 
 
+def hash_mismatch(path: Path) -> Optional[str]:
+    """Why ``path`` differs from the content hash stored beside it (``<path>.sha256``), or None when it matches or
+    no hash is stored."""
+    stored = Path(f"{path}{HASH_SUFFIX}")
+    if not stored.is_file():
+        return None
+    return None if file_sha256(path) == stored.read_text().strip() else f"its content does not match {stored.name}"
+
+
 def checkpoint_damage(path: Path) -> Optional[str]:
     """Why ``path`` (a finished run's ``final.ckpt``) cannot be trusted, or None when it is intact: its
     stored hash differs, or (no hash stored) it does not load as a checkpoint. A file that would run code
     when loaded is not damage: its :class:`~nerfart_plugin.errors.UnsafeCheckpointError` is raised."""
 
-    stored = Path(f"{path}{HASH_SUFFIX}")
-    if stored.is_file():
-        expected = stored.read_text().strip()
-        return None if file_sha256(path) == expected else f"its content does not match {stored.name}"
+    if Path(f"{path}{HASH_SUFFIX}").is_file():
+        return hash_mismatch(path)
     try:
         load_checkpoint(path)
     except UnsafeCheckpointError:

@@ -5,11 +5,9 @@ prepare it, build the system, fit (resume, atomic checkpoints, Ctrl-C, OOM), wri
 from __future__ import annotations
 
 import logging
-import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
@@ -23,6 +21,7 @@ from nerfart_plugin.results.run import Run, mix, open_run
 from nerfart_plugin.run.factories import SceneContext
 from nerfart_plugin.run.fit import FitResult, publish_final, stage_final
 from nerfart_plugin.run.folders import RunFolder
+from nerfart_plugin.utils.clock import PartClock
 from nerfart_plugin.utils.io import atomic_write_json
 
 log = logging.getLogger("nerfart_plugin")
@@ -36,22 +35,6 @@ class StageResult:
 
     checkpoint: Path
     summary: dict[str, Any] = field(default_factory=dict)
-
-
-class StageClock:
-    """Wall seconds of the parts of a stage (fit, evaluation, video, meshes), kept in ``metrics.json`` as
-    ``stage_seconds`` so that a user (and the main-job benchmark) sees where the time went."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-
-    @contextmanager
-    def part(self, name: str) -> Iterator[None]:
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t0, 3)
 
 
 @dataclass(frozen=True)
@@ -88,7 +71,7 @@ class TrainingStage:
     def __init__(self, scene: SceneContext, live: Optional[LiveViewerFactory] = None) -> None:
         self.scene = scene
         self.live = live
-        self.clock = StageClock()
+        self.clock = PartClock()  # stage_seconds in metrics.json: where the time went
 
     def run(self) -> StageResult:
         """Reuse the finished run, or compute it holding the folder's lock."""

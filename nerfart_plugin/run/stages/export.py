@@ -8,13 +8,13 @@ from pathlib import Path
 from typing import Any, Optional
 
 from nerfart_plugin.errors import NerfArtError
-from nerfart_plugin.export.splats import SplatFit, export_splats
-from nerfart_plugin.utils.lock import run_lock
-from nerfart_plugin.results.run import Run
-from nerfart_plugin.utils.io import atomic_write_json
 from nerfart_plugin.export.run_meshes import export_mesh
+from nerfart_plugin.export.splats import SplatFit, export_splats
+from nerfart_plugin.results.run import Run
 from nerfart_plugin.run.factories import SceneContext, checkpoint_run
 from nerfart_plugin.run.stages.base import StageResult, blended_run
+from nerfart_plugin.utils.io import atomic_write_json
+from nerfart_plugin.utils.lock import run_lock
 
 
 @dataclass

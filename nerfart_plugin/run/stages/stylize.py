@@ -66,7 +66,6 @@ class StylizeStage(TrainingStage):
         self.names = [f"{slug(style.name)}-{c.backbone.name}-{key}{style.stamp}" for key in self.keys.values()]
         self.folder = RunFolder.find(scene.root / "stylizations", self.names, "stylization")
         self.source_state: Optional[dict] = None
-        self.heldout_views: Optional[tuple[list[int], torch.Tensor, torch.Tensor]] = None  # (ids, source, stylized)
 
     @property
     def source_run(self) -> Optional[Path]:
@@ -144,7 +143,6 @@ class StylizeStage(TrainingStage):
         metrics["edge_similarity"] = edge_similarity(sty, src)
         metrics["silhouette_iou"] = silhouette_iou(_opacities(src_out), _opacities(sty_out))
         self.save_heldout(ids, src, sty)
-        self.heldout_views = (ids, src, sty)  # what a preview shows, without reading the PNGs back
         if self.region is not None:  # outside: the rays clear of the region and of the occupancy cells it reaches
             grid = system.view.occupancy
             reach = OUTSIDE_CELLS * grid.cell_size if grid is not None else 0.0
