@@ -575,7 +575,8 @@ def test_sigterm_outside_training_ends_as_ctrl_c_does(tmp_path):
 @pytest.mark.slow
 def test_two_exports_of_one_output_do_not_write_it_at_once(tmp_path):
     """stage=export holds a lock on what it writes: a second export of the same run and strength waits (or, with
-    lock_timeout=0, stops naming the holder) instead of writing the same files at the same time."""
+    lock_timeout=0, stops naming the holder) instead of writing the same files at the same time (the reuse of what
+    the first wrote: test_splats.test_stage_export_writes_splats_and_records_their_fit)."""
     Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON)).run()
     first = Pipeline(tiny_cfg(tmp_path, DEFAULT_SCENE, *RECON_SETTINGS, "stage=export")).run()["export"]
     holder = _hold_lock(Path(first["mesh"]), 30.0)

@@ -248,3 +248,13 @@ def test_stage_export_writes_splats_and_records_their_fit(shared_runs, exported)
     assert Path(report["file"]).parent == folder / "splats" and len(read_ply(Path(report["file"]))) == 500
     recorded = json.loads((folder / "metrics.json").read_text())["splats"][Path(report["file"]).name]
     assert recorded["psnr"] == report["psnr"] and recorded["frame"] == "world" and recorded["steps"] == 20
+    mesh_files = sorted(Path(out["export"]["mesh"]).parent.glob(Path(out["export"]["mesh"]).name + "*"))
+    stamps = {f: f.stat().st_mtime_ns for f in [Path(report["file"]), *mesh_files]}
+    settings = [f"output_root={shared_runs}", *TINY, "stage=export", "reconstruct.steps=300", "export.splats=true",
+                "export.splat_count=500", "export.splat_steps=20", "export.splat_resolution=32"]
+    again = run(composed(*settings))["export"]
+    assert again == out["export"] and mesh_files  # the same run and settings: reused, not written again
+    assert {f: f.stat().st_mtime_ns for f in stamps} == stamps
+    other = run(composed(*settings, "export.splat_steps=10"))["export"]["splats"]
+    assert other["steps"] == 10 and Path(report["file"]).stat().st_mtime_ns != stamps[Path(report["file"])]
+    assert all(f.stat().st_mtime_ns == stamps[f] for f in mesh_files)  # the splat settings do not touch the mesh

@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
 
+from nerfart_plugin.config.validate import result_settings
 from nerfart_plugin.errors import NerfArtError
-from nerfart_plugin.export.run_meshes import export_mesh
+from nerfart_plugin.export.run_meshes import export_mesh, recall_mesh, remember_mesh, tensors_hash
 from nerfart_plugin.export.splats import SplatFit, export_splats
 from nerfart_plugin.results.run import Run
 from nerfart_plugin.run.factories import SceneContext, checkpoint_run
 from nerfart_plugin.run.stages.base import StageResult, blended_run
-from nerfart_plugin.utils.io import atomic_write_json
+from nerfart_plugin.utils.io import atomic_write_json, config_hash
 from nerfart_plugin.utils.lock import run_lock
+
+log = logging.getLogger("nerfart_plugin")
 
 
 @dataclass
@@ -43,24 +47,51 @@ class ExportStage:
         run = blended_run(self.cfg, self.checkpoint) if blend else checkpoint_run(self.checkpoint, self.scene)
         ckpt = run.checkpoint
         stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{run.tag}"
-        with run_lock(stem, self.cfg.lock_timeout):  # two exports of one output: the second waits for the first
-            mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
-            summary = {"mesh": str(stem), "vertices": None if mesh is None else len(mesh.vertices)}
+        with run_lock(stem, self.cfg.lock_timeout):  # two exports of one output: the second waits, then reuses
+            summary = {"mesh": str(stem), "vertices": self.mesh(run, stem, export_key(run, self.cfg))}
             if self.cfg.export.splats:
                 summary["splats"] = self.splats(run, ckpt.parent / "splats" /
-                                                f"{stem.name.replace('export-', 'splats-')}.ply")
+                                                f"{stem.name.replace('export-', 'splats-')}.ply",
+                                                export_key(run, self.cfg, splats=True))
         return StageResult(ckpt, summary)
 
-    def splats(self, run: Run, path: Path) -> dict[str, Any]:
+    def mesh(self, run: Run, stem: Path, key: str) -> Optional[int]:
+        """The run's mesh files at ``stem`` (their vertex count; None: no surface): the ones already there when
+        they were written under ``key`` (the same field, blend and export settings), else extracted again."""
+        recalled = recall_mesh(stem, key)
+        if recalled is not None:
+            log.info("export: %s is up to date (the same run, blend and export settings); reused", stem)
+            return len(recalled[0].vertices)
+        mesh = export_mesh(MeshTarget(self.cfg, run.cameras), run.renderer.field, stem)
+        if mesh is None:
+            return None
+        remember_mesh(stem, mesh, key, self.cfg.export.formats)
+        return len(mesh.vertices)
+
+    def splats(self, run: Run, path: Path, key: str) -> dict[str, Any]:
         """The run's field as splats at ``path`` (:func:`~nerfart_plugin.export.splats.export_splats`), recorded in
-        the run's ``metrics.json`` under ``splats`` (by file name)."""
+        the run's ``metrics.json`` under ``splats`` (by file name) with ``key``; a file already there under the
+        same key is reused."""
+        metrics_file = Path(run.folder) / "metrics.json"
+        metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
+        stored = metrics.get("splats", {}).get(path.name)
+        if isinstance(stored, dict) and stored.get("key") == key and path.is_file():
+            log.info("export: %s is up to date (the same run, blend and splat settings); reused", path)
+            return stored
         ec = self.cfg.export
         fit = SplatFit(count=ec.splat_count, steps=ec.splat_steps, resolution=ec.splat_resolution, seed=self.cfg.seed)
-        report = export_splats(run, path, fit, frame=ec.frame)
-        metrics_file = Path(run.folder) / "metrics.json"
+        report = {**export_splats(run, path, fit, frame=ec.frame), "key": key}
         metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
         metrics.setdefault("splats", {})[path.name] = report
         atomic_write_json(metrics_file, metrics)
         return report
 
 
+def export_key(run: Run, cfg: Any, splats: bool = False) -> str:
+    """What a run's exported files depend on: its field's tensors (a blend's or region's composite included),
+    the blend, the capture's frame (normalization) and the export settings that change results: the mesh's, and
+    with ``splats`` the splat fit's too (and the seed it draws from)."""
+    settings = {k: v for k, v in result_settings(cfg.export).items() if splats or not k.startswith("splat")}
+    return config_hash({"field": tensors_hash(run.renderer.field), "blend": run.tag, "export": settings,
+                        "frame": [list(map(float, row)) for row in run.cameras.normalization],
+                        "seed": cfg.seed if splats else None}, n=64)
