@@ -110,6 +110,31 @@ def test_the_viewer_cli_says_which_port_it_took_when_the_asked_one_is_taken(styl
     assert f"port {port} is taken: serving on port" in text, text[-2000:]
 
 
+def test_the_viewer_compiles_in_the_background_and_its_frames_stay_the_same(styles):
+    """compile=on: frames are served (eager) while the field compiles on another thread; once it is ready the
+    frames come from the compiled field and equal the eager ones (8-bit rounding)."""
+    import torch
+
+    from nerfart_plugin.api import open_run
+    from nerfart_plugin.fields.compiled import compiler_missing
+    from nerfart_plugin.viewer.browser import wait_for
+    from nerfart_plugin.viewer.cameras import capture_camera
+    from nerfart_plugin.viewer.sources import RunField, ViewSettings
+
+    if compiler_missing(torch.device("cpu")):
+        pytest.skip(compiler_missing(torch.device("cpu")))
+    eager = RunField(open_run(styles["red"], device="cpu"))
+    assert not eager.compiled.is_set() and eager.compile_choice == "off"
+    field = RunField(open_run(styles["red"], device="cpu"), compile="on")
+    cam = capture_camera(field.cameras, 1)
+    reference = eager.render(cam, 32, ViewSettings())
+    field.render(cam, 32, ViewSettings())  # served while the compile runs
+    assert wait_for(field.compiled.is_set, 240), "the background compile did not finish"
+    compiled = field.render(cam, 32, ViewSettings())
+    assert field.run.renderer.field.compiled
+    assert np.abs(compiled.astype(int) - reference.astype(int)).max() <= 1
+
+
 # ---------------------------------------------------------------------- in the browser
 @pytest.fixture(scope="module")
 def page(styles, chromium):

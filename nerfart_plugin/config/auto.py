@@ -28,6 +28,7 @@ AUTO_SETTINGS: dict[str, str] = {
     # compute
     "device": "utils.device.pick_device",
     "trainer.strategy": "Lightning's Trainer (run.fit.build_trainer)",
+    "compile": "fields.compiled.decide_compile (per stage: the training steps, the frames)",
     # components, each deciding its own
     "backbone.grad_type": "fields.sdf.SDFField",
     "guidance.precision": "guidance.precision.compute_dtype (the CLIP guide)",

@@ -24,6 +24,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from nerfart_plugin.fields.compiled import evaluate
 from nerfart_plugin.fields.field import Field
 
 #: the per-sample keys a part's output is stored under inside the composite's output
@@ -135,10 +136,10 @@ class CompositeField(Field):
         n = x.shape[0]
         idx = where.nonzero()[:, 0]
         if idx.numel() == n:
-            return field.query(x, d, with_normal=with_normal)
+            return evaluate(field, x, d, with_normal=with_normal)
         if idx.numel() == 0:
             idx = torch.zeros(1, dtype=torch.long, device=x.device)
-        sub = field.query(x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normal)
+        sub = evaluate(field, x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normal)
         full = {}
         for k, v in sub.items():
             if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == idx.shape[0]:

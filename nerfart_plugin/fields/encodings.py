@@ -201,8 +201,7 @@ class TensorVMGridEncoding(Encoding):
         line_coords = torch.stack([torch.zeros_like(line_c), line_c], -1)  # [3,N,2]: W=1 col, H=coord
         feats = []
         for planes, lines in zip(self.planes, self.lines):
-            p = F.grid_sample(planes.to(dtype), plane_coords[:, :, None, :], mode="bilinear", align_corners=True)
-            l = F.grid_sample(lines.to(dtype), line_coords[:, :, None, :], mode="bilinear", align_corners=True)
+            p, l = _grid_lookup(planes.to(dtype), lines.to(dtype), plane_coords, line_coords)
             f = (p * l)[..., 0]  # [3,C,N]
             feats.append(f.permute(2, 0, 1).reshape(N, -1))
         out = torch.cat(feats, -1) if len(feats) > 1 else feats[0]
@@ -223,6 +222,16 @@ class TensorVMGridEncoding(Encoding):
             for p in self.planes
         )
         return {"grid_tv": self.tv_weight * tv}
+
+
+@torch.compiler.disable
+def _grid_lookup(planes: Tensor, lines: Tensor, plane_coords: Tensor, line_coords: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinear lookups of ``planes`` [3,C,r,r] and ``lines`` [3,C,r,1] at ``plane_coords`` / ``line_coords``
+    [3,N,2] -> [3,C,N,1] each. Left to ATen's kernels when the field is compiled: the compiler's own
+    ``grid_sample`` (a decomposition into gathers) is slower on a CPU, forward and backward (BENCHMARKS.md)."""
+    p = F.grid_sample(planes, plane_coords[:, :, None, :], mode="bilinear", align_corners=True)
+    l = F.grid_sample(lines, line_coords[:, :, None, :], mode="bilinear", align_corners=True)
+    return p, l
 
 
 @register("encoding", "sh")

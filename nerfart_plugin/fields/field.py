@@ -33,6 +33,7 @@ class Field(nn.Module):
         occupancy_threshold: score above which the occupancy grid marks a cell occupied
             (None: the grid's adaptive density threshold).
         regularizer_names: the terms :meth:`regularizers` returns while training.
+        compiled: whether callers evaluate :meth:`query` through ``torch.compile`` (:func:`fields.compiled.evaluate`).
         alpha_lookahead: how many following samples of a ray :meth:`alpha` reads besides the section's
             own (0: each opacity is local; NeuS' section estimate reads the next sample's SDF: 1), so
             that a renderer marching a ray block by block evaluates them with each block.
@@ -44,6 +45,8 @@ class Field(nn.Module):
     mesh_inside_is_below: bool = True
     occupancy_threshold: Optional[float] = None
     alpha_lookahead: int = 0
+    #: evaluate ``query`` compiled (:mod:`nerfart_plugin.fields.compiled`; the ``compile`` setting sets it)
+    compiled: bool = False
 
     # ---- what the renderer calls ----------------------------------------------------------
     def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:  # pragma: no cover

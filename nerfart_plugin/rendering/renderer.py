@@ -17,6 +17,7 @@ import torch.nn as nn
 from torch import Tensor
 
 from nerfart_plugin.errors import ConfigError, DataError
+from nerfart_plugin.fields.compiled import evaluate
 from nerfart_plugin.fields.field import Field
 from nerfart_plugin.fields.occupancy import OccupancyGrid
 from nerfart_plugin.rendering.samplers import occupancy_samples, ray_aabb, stratified_samples, weighted_samples
@@ -262,12 +263,12 @@ class VolumeRenderer(nn.Module):
         """
         n = x.shape[0]
         if not self.compact or bool(valid.all()):
-            out = self.field.query(x, d, with_normal=with_normals)
+            out = evaluate(self.field, x, d, with_normal=with_normals)
             return out, out
         idx = valid.nonzero()[:, 0]
         if idx.numel() == 0:  # keep shapes/graph alive: evaluate one (transparent) sample
             idx = torch.zeros(1, dtype=torch.long, device=x.device)
-        sub = self.field.query(x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normals)
+        sub = evaluate(self.field, x.index_select(0, idx), d.index_select(0, idx), with_normal=with_normals)
         full = {}
         for k, v in sub.items():
             if torch.is_tensor(v) and v.dim() >= 1 and v.shape[0] == idx.shape[0]:

@@ -27,6 +27,7 @@ from nerfart_plugin.data.rays import views_at_resolution
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data.setup import SceneSetup, decide_setup
 from nerfart_plugin.fields import occupancy_scores_opacity
+from nerfart_plugin.fields.compiled import decide_compile, set_compiled
 from nerfart_plugin.guidance import default_negative_threshold
 from nerfart_plugin.guidance.style import Style, build_style
 from nerfart_plugin.fields.composite import RegionMask
@@ -117,8 +118,9 @@ def build_reconstruction_system(scene: SceneContext, out_dir: Optional[Path] = N
 
     scene.dm.setup("fit")
     c = scene.cfg
-    return ReconstructionSystem(c, setup or scene.setup, train_rays=scene.dm.train_rays,
-                                out_dir=str(out_dir) if out_dir is not None else None)
+    system = ReconstructionSystem(c, setup or scene.setup, train_rays=scene.dm.train_rays,
+                                  out_dir=str(out_dir) if out_dir is not None else None)
+    return compile_system(system, scene, c.reconstruct.steps)
 
 
 def load_renderer_state(ckpt_path: Path, scene: Optional[SceneContext] = None) -> dict[str, torch.Tensor]:
@@ -165,9 +167,21 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     style = style or build_style(c)
     sc = stylize_settings(scene, style)
     views = scene.views(scene.scene.train_ids, sc.resolution)
-    return StylizationSystem(c, scene.setup, style, source_state, views, settings=sc,
-                             out_dir=str(out_dir) if out_dir is not None else None,
-                             region=bound_region(scene, region_from_config(c.region)))
+    system = StylizationSystem(c, scene.setup, style, source_state, views, settings=sc,
+                               out_dir=str(out_dir) if out_dir is not None else None,
+                               region=bound_region(scene, region_from_config(c.region)))
+    return compile_system(system, scene, sc.steps, cpu_gain=False)
+
+
+def compile_system(system: Any, scene: SceneContext, steps: int, cpu_gain: bool = True) -> Any:
+    """``system`` with its fields compiled where the ``compile`` setting says so for a run of ``steps`` steps
+    (:func:`~nerfart_plugin.fields.compiled.decide_compile`); what was decided is ``system.compile_choice``,
+    recorded in the run's ``metrics.json``."""
+    on, system.compile_choice = decide_compile(scene.cfg.compile, torch.device(scene.device), steps,
+                                               cpu_gain=cpu_gain)
+    set_compiled(system, on)
+    log.info("compile: %s", system.compile_choice)
+    return system
 
 
 def checkpoint_run(ckpt: Path, scene: SceneContext) -> Run:

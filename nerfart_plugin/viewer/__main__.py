@@ -26,6 +26,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; the next free one if taken)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N | mps")
     p.add_argument("--max-side", type=int, default=512, help="long side (pixels) of the finest frame")
+    p.add_argument("--compile", default="auto", choices=("auto", "on", "off"),
+                   help="compiled frames (auto: compiled in the background where a C++ compiler or Triton is "
+                   "available; eager frames meanwhile)")
     p.add_argument("--checkpoint", default="final.ckpt", help="the checkpoint in RUN (last.ckpt: an unfinished run)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
@@ -40,7 +43,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         viewer = open_viewer(args.run, host=args.host, port=args.port, device=args.device, max_side=args.max_side,
-                             checkpoint=args.checkpoint)
+                             checkpoint=args.checkpoint, compile=args.compile)
     except NerfArtError as exc:
         p.exit(2, f"error: {exc}\n")
     if args.port and viewer.port != args.port:

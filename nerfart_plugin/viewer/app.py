@@ -13,13 +13,15 @@ from nerfart_plugin.viewer.server import Viewer
 from nerfart_plugin.viewer.sources import RunField, sibling_runs
 
 def open_viewer(run: Union[str, Path, Any], host: str = "127.0.0.1", port: int = 8080, device: str = "auto",
-                max_side: int = 512, checkpoint: str = "final.ckpt") -> Any:
+                max_side: int = 512, checkpoint: str = "final.ckpt", compile: str = "auto") -> Any:
     """Serve a finished run (a folder, a ``.ckpt`` in one, or an :class:`~nerfart_plugin.api.Run`) and return
-    the running :class:`~nerfart_plugin.viewer.server.Viewer` (``.url``; ``.stop()`` to end it)."""
+    the running :class:`~nerfart_plugin.viewer.server.Viewer` (``.url``; ``.stop()`` to end it). ``compile``: the
+    ``compile`` setting for the frames (auto: compiled in the background where a compiler is available, eager
+    frames until then)."""
 
     opened = run if isinstance(run, Run) else open_run(run, checkpoint=checkpoint, device=device)
     siblings = sibling_runs(opened)
-    field = RunField(opened, siblings)
+    field = RunField(opened, siblings, compile=compile)
     viewer = Viewer(field, host=host, port=port, max_side=max_side, writable=Path(opened.folder) / "render",
                     title=f"nerfart_plugin: {opened.metrics.get('prompt') or opened.kind}")
     panels.add_facts(viewer, panels.run_facts(opened))

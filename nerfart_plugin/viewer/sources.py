@@ -26,6 +26,7 @@ import torch
 from nerfart_plugin.api import Region, mix, open_run
 from nerfart_plugin.cameras.capture import CaptureCameras
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.fields.compiled import decide_compile, set_compiled, warm_up
 from nerfart_plugin.rendering.frames import render_cameras
 from nerfart_plugin.viewer.cameras import ViewCamera, render_path
 
@@ -82,7 +83,7 @@ class RunField:
 
     render_share: Optional[float] = None
 
-    def __init__(self, run: Any, siblings: Sequence[Path] = ()) -> None:
+    def __init__(self, run: Any, siblings: Sequence[Path] = (), compile: str = "off") -> None:
         self.run = run
         self.siblings = list(siblings)
         self.lock = threading.Lock()
@@ -91,6 +92,17 @@ class RunField:
         self._source: Any = None
         self._blend: tuple[tuple[Any, ...], Any] = ((1.0,) + (0.0,) * len(self.siblings) + ("",), run.renderer)
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="viewer-render")
+        self.compiled = threading.Event()  # set once the field's compiled kernels are ready
+        on, self.compile_choice = decide_compile(compile, torch.device(run.device))
+        if on:
+            threading.Thread(target=self._compile, name="viewer-compile", daemon=True).start()
+
+    def _compile(self) -> None:
+        """Compile the run's field in the background (the frames meanwhile are eager), then render compiled."""
+        field = self.run.renderer.field
+        seconds = warm_up(field, self.run.device) + warm_up(field, self.run.device, with_normal=True)
+        self.compiled.set()
+        log.info("viewer: the field is compiled (%.0f s); frames from now on use it", seconds)
 
     def timed_render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> tuple[np.ndarray, float]:
         """:meth:`render` on the field's render thread; the frame and its seconds."""
@@ -149,6 +161,10 @@ class RunField:
     def render(self, camera: ViewCamera, long_side: int, settings: ViewSettings) -> np.ndarray:
         """One frame (see :func:`render_frame`) of what ``settings`` select; ``split``: source | stylized."""
         chunk, dev = max(self.run.config.render.chunk, VIEW_CHUNK), self.run.device
+        if self.compiled.is_set():  # every field a frame may use (blends and siblings opened later too)
+            for renderer in (self.run.renderer, self._source, self.renderer(settings)):
+                if renderer is not None:
+                    set_compiled(renderer, True)
         if settings.mode == "split" and self.is_stylization:
             left = render_frame(self.source_renderer, self.cameras, camera, long_side, settings.channel, chunk, dev)
             right = render_frame(self.renderer(ViewSettings(settings.channel, "stylized", settings.weights)),

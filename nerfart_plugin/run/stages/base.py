@@ -136,6 +136,7 @@ class TrainingStage:
         scene = self.scene.scene
         return {**self.scene.setup.auto_choices(), "data.resolution": max(scene.height, scene.width),
                 "device": self.scene.device, "trainer.strategy": type(fit.trainer.strategy).__name__,
+                "compile": getattr(system, "compile_choice", "off"),
                 **component_choices(self.scene.device, [system.field, getattr(system, "guidance", None),
                                                         getattr(system, "perceptual", None)])}
 

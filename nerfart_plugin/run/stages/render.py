@@ -5,7 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Optional
 
+import torch
+
 from nerfart_plugin.config.auto import recorded
+from nerfart_plugin.fields.compiled import MIN_COMPILED_FRAMES, decide_compile, set_compiled
 from nerfart_plugin.run.stages.base import StageResult, blended_run
 
 
@@ -21,6 +24,10 @@ class RenderStage:
         run = blended_run(self.cfg, self.run_dir)
         resolution = None if rc.resolution == "auto" else int(rc.resolution)
         path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
+        on, compiled = decide_compile(self.cfg.compile, torch.device(run.device), len(path), MIN_COMPILED_FRAMES,
+                                      "frames")
+        set_compiled(run.renderer, on)
         summary = run.write_render(run.render_folder(path), path, channels=rc.channels, fps=rc.fps, png=rc.png)
-        summary["auto"] = recorded(self.cfg, {"render.resolution": max(path.width, path.height)})
+        summary["auto"] = recorded(self.cfg, {"render.resolution": max(path.width, path.height),
+                                              "compile": compiled})
         return StageResult(run.checkpoint, summary)

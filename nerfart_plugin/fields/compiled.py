@@ -1,0 +1,160 @@
+"""Compiled field evaluation (the ``compile`` setting): a field's ``query`` through ``torch.compile``.
+
+What is compiled is each leaf field's ``query`` (encoding, MLPs, the SDF-to-colour step), once per field class,
+with dynamic shapes (the renderer's sample counts vary per block and batch). The grid encodings' bilinear lookups
+stay ATen's own kernels (``encodings._grid_lookup``): the compiler's decomposition of ``grid_sample`` is slower on
+a CPU. Everything else the compiler fuses (the softplus, the concatenations, the sigmoid, the finite-difference
+taps), which is where an eager field spends the time that the matrix products and lookups leave.
+
+Callers evaluate a field through :func:`evaluate` (the renderer and the composite field do): a field whose
+``compiled`` flag is set runs the compiled query, others their own. A compile that fails (a custom field the
+compiler cannot trace, a platform without a working compiler) logs why once and leaves that field eager; the
+results are the eager ones up to float rounding (tests/test_compiled.py).
+
+The compiled kernels are cached on disk by inductor (:func:`use_cache_dir`: ``$NERFART_COMPILE_CACHE``, else
+``~/.cache/nerfart_plugin/inductor``), so a second process pays a fraction of the first one's compile time.
+Delete that folder to clear it.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import platform
+import shutil
+from pathlib import Path
+from typing import Any, Callable, Optional
+
+import torch
+from torch import Tensor, nn
+
+log = logging.getLogger("nerfart_plugin")
+
+#: the compiled ``query`` of each field class (the field instance is an argument, so copies share it)
+_COMPILED: dict[type, Callable[..., dict[str, Tensor]]] = {}
+
+#: training steps below which ``compile=auto`` stays eager: the compile (seconds, more with a cold cache) would
+#: not pay for itself (BENCHMARKS.md, "A compiled field")
+MIN_COMPILED_STEPS = 200
+
+#: video frames below which ``compile=auto`` renders eager (stage=render)
+MIN_COMPILED_FRAMES = 60
+
+#: environment variable naming the compile cache folder
+CACHE_ENV = "NERFART_COMPILE_CACHE"
+
+
+def cache_dir() -> Path:
+    """Where inductor keeps the compiled kernels between runs: ``$NERFART_COMPILE_CACHE``, else
+    ``~/.cache/nerfart_plugin/inductor``."""
+    return Path(os.environ.get(CACHE_ENV) or Path.home() / ".cache" / "nerfart_plugin" / "inductor").expanduser()
+
+
+def use_cache_dir() -> Path:
+    """Point inductor's on-disk cache at :func:`cache_dir` (unless ``TORCHINDUCTOR_CACHE_DIR`` is set already)."""
+    folder = Path(os.environ.setdefault("TORCHINDUCTOR_CACHE_DIR", str(cache_dir())))
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
+def compiler_missing(device: torch.device) -> Optional[str]:
+    """Why ``torch.compile`` cannot run on ``device`` here (None: it can): inductor needs a C++ compiler for CPU
+    kernels and Triton for CUDA ones, and does not support Windows."""
+    if platform.system() == "Windows":
+        return "torch.compile's inductor does not support Windows"
+    if device.type == "cuda":
+        try:
+            import triton  # noqa: F401
+        except ImportError:
+            return "Triton is not installed (pip install triton)"
+        return None
+    if device.type == "cpu":
+        found = next((c for c in (os.environ.get("CXX"), "c++", "g++", "clang++") if c and shutil.which(c)), None)
+        return None if found else "no C++ compiler on the PATH (install g++ or clang++, or set CXX)"
+    return f"inductor does not compile for {device.type}"
+
+
+def decide_compile(setting: str, device: torch.device, work: Optional[int] = None,
+                   minimum: int = MIN_COMPILED_STEPS, unit: str = "steps", cpu_gain: bool = True) -> tuple[bool, str]:
+    """Whether to compile the fields (``compile`` = on | off | auto) and the reason, as recorded in
+    ``metrics.json["auto"]["compile"]``. ``auto``: on where a compiler is available and the work is long enough
+    to pay for the compile (``work`` >= ``minimum`` ``unit``: training steps, video frames; None: it always is),
+    and, on a CPU, where the work gains from it at all (``cpu_gain``: False for the stylization, whose step
+    measured no faster compiled on a CPU: the guide and the grid lookups' backward dominate it)."""
+    if setting == "off":
+        return False, "off"
+    missing = compiler_missing(device)
+    if setting == "on":
+        if missing:
+            from nerfart_plugin.errors import ConfigError
+
+            raise ConfigError(f"compile=on: {missing}. Use compile=auto (compiles where it can) or compile=off.")
+        return True, "on"
+    if missing:
+        return False, f"off ({missing})"
+    if device.type == "cpu" and not cpu_gain:
+        return False, "off (no gain measured for this stage on a CPU)"
+    if work is not None and work < minimum:
+        return False, f"off ({work} {unit} < {minimum}: the compile would not pay)"
+    return True, "on"
+
+
+def leaf_fields(module: nn.Module) -> list[nn.Module]:
+    """The fields inside ``module`` that evaluate points themselves (composites evaluate their parts)."""
+    from nerfart_plugin.fields.composite import CompositeField
+    from nerfart_plugin.fields.field import Field
+
+    return [m for m in module.modules() if isinstance(m, Field) and not isinstance(m, CompositeField)]
+
+
+def set_compiled(module: nn.Module, on: bool = True) -> int:
+    """Set the ``compiled`` flag of every leaf field inside ``module`` (a field, a renderer, a system); returns how
+    many. The compile itself happens at each field class's first evaluation (and once more per grad mode)."""
+    if on:
+        use_cache_dir()
+    fields = leaf_fields(module)
+    for f in fields:
+        f.compiled = on
+    return len(fields)
+
+
+def compiled_query(cls: type) -> Callable[..., dict[str, Tensor]]:
+    """``cls.query`` through ``torch.compile`` (dynamic shapes), made once per field class."""
+    fn = _COMPILED.get(cls)
+    if fn is None:
+        fn = _COMPILED[cls] = torch.compile(cls.query, dynamic=True)
+    return fn
+
+
+def evaluate(field: nn.Module, x: Tensor, d: Tensor, with_normal: bool = True) -> dict[str, Tensor]:
+    """``field.query(x, d, with_normal)``, compiled when the field's ``compiled`` flag is set (see the module
+    docstring); a field whose compile fails is evaluated eagerly from then on, with the reason logged once."""
+    if not getattr(field, "compiled", False) or x.shape[0] < 2:
+        return field.query(x, d, with_normal=with_normal)
+    try:
+        return compiled_query(type(field))(field, x, d, with_normal=with_normal)
+    except torch._dynamo.exc.TorchDynamoException as exc:  # the compiler's own failures (a field's errors recur eager)
+        field.compiled = False
+        log.warning("compile: %s is evaluated uncompiled: the compiler failed (%s: %s)", type(field).__name__,
+                    type(exc).__name__, str(exc).splitlines()[0][:300] if str(exc) else "")
+        return field.query(x, d, with_normal=with_normal)
+
+
+def warm_up(field: nn.Module, device: Any, with_normal: bool = False) -> float:
+    """Compile ``field``'s no-grad query now (a few points), e.g. in a viewer's background thread while it serves
+    eager frames; returns the seconds it took."""
+    import time
+
+    t0 = time.perf_counter()
+    x = torch.zeros(64, 3, device=device)
+    d = torch.nn.functional.normalize(torch.ones(64, 3, device=device), dim=-1)
+    with torch.no_grad():
+        for f in leaf_fields(field):
+            evaluate(f, x, d, with_normal=with_normal)
+    return time.perf_counter() - t0
+
+
+def compiled_fields(module: nn.Module) -> list[str]:
+    """Names of the field classes inside ``module`` that evaluate compiled (for reports)."""
+    return sorted({type(f).__name__ for f in leaf_fields(module) if getattr(f, "compiled", False)})
+
