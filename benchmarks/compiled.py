@@ -59,7 +59,7 @@ def interleaved(fns: dict[str, Callable[[], Any]], reps: int) -> dict[str, float
 
 
 # --------------------------------------------------------------------------- 1. the field
-def field_parts(folder: Path, reps: int, n: int) -> list[dict[str, Any]]:
+def field_parts(folder: Path, reps: int, n: int, device: str = "cpu") -> list[dict[str, Any]]:
     """Eager vs compiled ``query`` of the run's field on ``n`` points: three uses (see the module docstring)."""
     import copy
 
@@ -68,17 +68,20 @@ def field_parts(folder: Path, reps: int, n: int) -> list[dict[str, Any]]:
     from nerfart_plugin.api import open_run
     from nerfart_plugin.fields.compiled import evaluate, set_compiled
 
-    eager = open_run(folder, device="cpu").renderer.field
+    eager = open_run(folder, device=device).renderer.field
     comp = copy.deepcopy(eager)
     set_compiled(comp)
     g = torch.Generator().manual_seed(0)
-    x = (torch.rand(n, 3, generator=g) * 2 - 1) * 0.8 * float(eager.bound)
-    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    x = ((torch.rand(n, 3, generator=g) * 2 - 1) * 0.8 * float(eager.bound)).to(device)
+    d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1).to(device)
+    sync = torch.cuda.synchronize if torch.device(device).type == "cuda" else (lambda: None)
 
     def nograd(field: Any, normals: bool) -> Callable[[], Any]:
         def call() -> Any:
             with torch.no_grad():
-                return evaluate(field, x, d, with_normal=normals)
+                out = evaluate(field, x, d, with_normal=normals)
+            sync()
+            return out
         return call
 
     def train(field: Any) -> Callable[[], Any]:
@@ -90,6 +93,7 @@ def field_parts(folder: Path, reps: int, n: int) -> list[dict[str, Any]]:
             loss = out["rgb"].square().mean() + sum(field.regularizers(out).values())
             field.zero_grad()
             loss.backward()
+            sync()
         return call
 
     rows = []
@@ -103,7 +107,7 @@ def field_parts(folder: Path, reps: int, n: int) -> list[dict[str, Any]]:
 
 
 # --------------------------------------------------------------------------- 2. the viewer's frame
-def frame(folder: Path, reps: int, side: int) -> dict[str, Any]:
+def frame(folder: Path, reps: int, side: int, device: str = "cpu") -> dict[str, Any]:
     """The viewer's ``side`` px frame (front camera), eager vs compiled, and the compiled frame's top operators."""
     import torch
     from torch.profiler import profile
@@ -113,7 +117,7 @@ def frame(folder: Path, reps: int, side: int) -> dict[str, Any]:
     from nerfart_plugin.viewer.cameras import capture_camera
     from nerfart_plugin.viewer.sources import RunField, ViewSettings
 
-    eager, comp = RunField(open_run(folder, device="cpu")), RunField(open_run(folder, device="cpu"))
+    eager, comp = RunField(open_run(folder, device=device)), RunField(open_run(folder, device=device))
     set_compiled(comp.run.renderer)
     cam = capture_camera(eager.cameras, 0)
     t0 = time.perf_counter()
@@ -134,7 +138,7 @@ def frame(folder: Path, reps: int, side: int) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- 3. training steps
-def reconstruction_steps(overrides: list[str], steps: int) -> dict[str, Any]:
+def reconstruction_steps(overrides: list[str], steps: int) -> dict[str, Any]:  # on the overrides' device
     """A reconstruction step's parts (ms), eager and compiled systems alternating step by step."""
     import lightning as L
     import torch
@@ -198,10 +202,10 @@ COMPILE_PROBE = """
 import sys, time, torch
 from nerfart_plugin.api import open_run
 from nerfart_plugin.fields.compiled import evaluate, set_compiled
-field = open_run(sys.argv[1], device="cpu").renderer.field
+field = open_run(sys.argv[1], device=sys.argv[2]).renderer.field
 set_compiled(field)
-x = torch.rand(4096, 3) - 0.5
-d = torch.nn.functional.normalize(torch.randn(4096, 3), dim=-1)
+x = torch.rand(4096, 3, device=sys.argv[2]) - 0.5
+d = torch.nn.functional.normalize(torch.randn(4096, 3, device=sys.argv[2]), dim=-1)
 t0 = time.perf_counter()
 with torch.no_grad():
     evaluate(field, x, d, with_normal=False)
@@ -214,14 +218,14 @@ print("COMPILE", t1 - t0, t2 - t1)
 """
 
 
-def compile_times(folder: Path) -> dict[str, Any]:
+def compile_times(folder: Path, device: str = "cpu") -> dict[str, Any]:
     """Seconds to compile the field's no-grad and training graphs in a fresh process: with an empty kernel
     cache (cold), then with the cache that run filled (warm)."""
     out = {}
     with tempfile.TemporaryDirectory() as cache:
         env = {**os.environ, "NERFART_COMPILE_CACHE": cache, "TORCHINDUCTOR_CACHE_DIR": cache}
         for label in ("cold", "warm"):
-            proc = subprocess.run([sys.executable, "-c", COMPILE_PROBE, str(folder)], cwd=ROOT, env=env,
+            proc = subprocess.run([sys.executable, "-c", COMPILE_PROBE, str(folder), device], cwd=ROOT, env=env,
                                   capture_output=True, text=True, check=True)
             line = next(ln for ln in proc.stdout.splitlines() if ln.startswith("COMPILE"))
             nograd, train = map(float, line.split()[1:])
@@ -236,7 +240,7 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
         return f"{e / c:.2f}x" if c else "–"
 
     fr = raw["frame"]
-    body = ["Eager against compiled (`compile=on`: each field's `query` through `torch.compile`, inductor, dynamic "
+    body = [f"Device: {raw.get('device', 'cpu')}. Eager against compiled (`compile=on`: each field's `query` through `torch.compile`, inductor, dynamic "
             "shapes; the grid lookups left to ATen), measured in one process, interleaved; ratio = eager / "
             "compiled (above 1: the compiled is faster).", "",
             "**The field** (the head's VolSDF on the TensorVM grid, random points in the box):", ""]
@@ -255,7 +259,9 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
     rows = [[f"reconstruction: {k}", f"{rs['eager'][k]:.1f}", f"{rs['compiled'][k]:.1f}",
              ratio(rs["eager"][k], rs["compiled"][k])] for k in ("forward", "backward", "optimizer", "step")]
     rows += [[f"stylization: {k}", f"{ss['eager'][k]:.0f}", f"{ss['compiled'][k]:.0f}",
-              ratio(ss["eager"][k], ss["compiled"][k])] for k in ss["eager"]]
+              ratio(ss["eager"][k], ss["compiled"][k])] for k in ss.get("eager", {})]
+    if "error" in ss:
+        rows.append(["stylization: not measured", ss["error"][:120], "", ""])
     body += common.md_table(["step part", "eager", "compiled", "ratio"], rows)
     ct = raw["compile"]
     body += ["", f"**Compile time** of the field (a fresh process; no-grad graph + training graph): empty kernel "
@@ -267,16 +273,21 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
 def measure(args: argparse.Namespace) -> dict[str, Any]:
     q = args.quick
     recon = QUICK_RECONSTRUCTION if q else RECONSTRUCTION
-    folder = common.trained_run(args.root, recon)
+    dev = [f"device={args.device}"]
+    folder = common.trained_run(args.root, [*recon, *dev])
     reps = 2 if q else args.reps
-    raw: dict[str, Any] = {"run": str(folder)}
-    raw["field"] = field_parts(folder, reps, 4096 if q else 65536)
-    raw["frame"] = frame(folder, reps, 32 if q else FRAME_SIDE)
-    raw["reconstruction"] = reconstruction_steps([f"output_root={args.root}", *recon], 3 if q else args.steps)
-    style = ["guidance=toy"] if q else ["guidance=imagenet"]
-    raw["stylization"] = stylization_steps(folder / "final.ckpt", [*recon[1:], *style, "stylize.resolution=32"]
-                                           if q else style, 2 if q else 6, 1 if q else 2)
-    raw["compile"] = compile_times(folder)
+    raw: dict[str, Any] = {"run": str(folder), "device": args.device}
+    raw["field"] = field_parts(folder, reps, 4096 if q else 65536, args.device)
+    raw["frame"] = frame(folder, reps, 32 if q else FRAME_SIDE, args.device)
+    raw["reconstruction"] = reconstruction_steps([f"output_root={args.root}", *recon, *dev], 3 if q else args.steps)
+    style = [*dev, "guidance=toy"] if q else [*dev, "guidance=imagenet"]
+    try:
+        raw["stylization"] = stylization_steps(folder / "final.ckpt", [*recon[1:], *style, "stylize.resolution=32"]
+                                               if q else style, 2 if q else 6, 1 if q else 2)
+    except Exception as exc:  # noqa: BLE001 - e.g. the guide's weights missing on a GPU machine: say so, go on
+        raw["stylization"] = {"error": f"{type(exc).__name__}: {exc}"}
+        log.warning("stylization steps not measured: %s", raw["stylization"]["error"])
+    raw["compile"] = compile_times(folder, args.device)
     return raw
 
 
@@ -287,6 +298,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="outputs root holding (or to hold) the head's reconstruction")
     p.add_argument("--reps", type=int, default=9, help="interleaved repetitions of the field and frame timings")
     p.add_argument("--steps", type=int, default=20, help="reconstruction steps timed each way")
+    p.add_argument("--device", default="cpu", help="cpu | cuda (the GPU check runs it on cuda)")
     common.add_common_args(p)
     common.add_raw_args(p)
     args = p.parse_args(argv)

@@ -45,6 +45,8 @@ class ConfigError(NerfArtError, ValueError):
         ("an unknown component (`backbone=nerv`), a missing `+prompt=` for a stylizing stage",
          "the message lists the valid names; add `+prompt=\"...\"` or use `stage=reconstruct`"),
         ("`device=cuda` on a machine without that GPU", "use `device=auto` or `device=cpu`"),
+        ("`compile=on` where torch.compile has no compiler (no g++/clang++ for the CPU, no Triton for CUDA)",
+         "install one, or use `compile=auto` (compiles where it can) or `compile=off`"),
         ("`strength` outside [0, 2], mix weights outside [-1, 2], runs of different sources mixed",
          "pick a value in range; mix stylizations of one reconstruction"),
         ("an `output_root` that cannot be written (read-only, a file in the way, under 64 MiB free)",

@@ -471,3 +471,22 @@ def test_preview_retime_replaces_the_times_and_refuses_a_changed_preview(tmp_pat
         bench.retime(args)
     with pytest.raises(SystemExit, match=r"no preview of \['snail'\]"):  # only prompts the raw file has
         bench.retime(argparse.Namespace(**{**vars(args), "retime": ["snail"]}))
+
+
+def test_compiled_quick(out: Path, tmp_path: Path) -> None:
+    """The compiled-field benchmark end to end at smoke size: every part measured both ways, the compiled
+    frame equal to the eager one, the compile cold and warm."""
+    from nerfart_plugin.fields.compiled import compiler_missing
+
+    if compiler_missing(__import__("torch").device("cpu")):
+        pytest.skip("no C++ compiler for torch.compile")
+    mod = _load("compiled")
+    raw = tmp_path / "raw.json"
+    assert mod.main(["--quick", "--root", str(tmp_path / "runs"), "--raw", str(raw), "--out", str(out)]) == 0
+    sec = _check_common(out.read_text(), "compiled", "--quick")
+    figures = json.loads(raw.read_text())
+    assert len(figures["field"]) == 3 and all(r["eager"] > 0 and r["compiled"] > 0 for r in figures["field"])
+    assert figures["frame"]["max_pixel_diff"] <= 1 and figures["frame"]["top_ops"]
+    assert figures["reconstruction"]["compiled"]["step"] > 0 and "step" in figures["stylization"]["compiled"]
+    assert figures["compile"]["cold"]["no_grad_s"] > 0 and figures["compile"]["warm"]["training_s"] > 0
+    assert "| reconstruction: step |" in sec and "Compile time" in sec
