@@ -22,6 +22,7 @@ Everything runs on the README job's reconstruction of the head (VolSDF on the Te
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 import statistics
@@ -234,7 +235,35 @@ def compile_times(folder: Path, device: str = "cpu") -> dict[str, Any]:
     return out
 
 
+# --------------------------------------------------------------------------- the main job
+def main_job_rows(files: dict[str, Path]) -> list[dict[str, Any]]:
+    """The first job of each ``python -m benchmarks main_job`` raw file (label -> file): its seconds, the two
+    fits, the held-out PSNR, the judge's top-5 and what ``compile`` became in each stage."""
+    rows = []
+    for label, path in files.items():
+        job = json.loads(Path(path).read_text())["jobs"][0]
+        rec, sty = job["reconstruction"], job["stylization"]
+        judge = sty.get("judge", {}).get("stylized", {})
+        rows.append({"label": label, "seconds": job["seconds"], "reconstruction_fit": rec["stage_seconds"]["fit"],
+                     "stylization_fit": sty["stage_seconds"]["fit"], "psnr": job["result"]["reconstruction"]["psnr"],
+                     "top5": round(judge.get("top5_rate", 0) * len(judge.get("per_view", []))),
+                     "views": len(judge.get("per_view", [])), "compile": [rec["auto"].get("compile", "–"),
+                                                                          sty["auto"].get("compile", "–")]})
+    return rows
+
+
 # --------------------------------------------------------------------------- report
+def main_job_lines(rows: list[dict[str, Any]]) -> list[str]:
+    lines = ["", "**The main job** (`python -m benchmarks main_job --prompts 'brain coral'`, the README's job from an "
+             "empty output root; the kernel cache emptied before the cold run, kept for the warm one):", ""]
+    lines += common.md_table(
+        ["run", "end to end (s)", "reconstruction fit (s)", "stylization fit (s)", "held-out PSNR (dB)", "judge top-5",
+         "compile (reconstruction / stylization)"],
+        [[r["label"], f"{r['seconds']:.0f}", f"{r['reconstruction_fit']:.0f}", f"{r['stylization_fit']:.0f}",
+          f"{r['psnr']:.2f}", f"{r['top5']}/{r['views']}", " / ".join(r["compile"])] for r in rows])
+    return lines
+
+
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
     def ratio(e: float, c: float) -> str:
         return f"{e / c:.2f}x" if c else "–"
@@ -267,6 +296,9 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
     body += ["", f"**Compile time** of the field (a fresh process; no-grad graph + training graph): empty kernel "
              f"cache {ct['cold']['no_grad_s']:.1f} + {ct['cold']['training_s']:.1f} s, warm cache "
              f"{ct['warm']['no_grad_s']:.1f} + {ct['warm']['training_s']:.1f} s."]
+    if raw.get("main_job"):
+        body += main_job_lines(raw["main_job"])
+    body += [""] + list(raw.get("notes", []))
     return common.section(NAME, "A compiled field", cmd, info, body, quick)
 
 
@@ -300,10 +332,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=20, help="reconstruction steps timed each way")
     p.add_argument("--device", default="cpu", help="cpu | cuda (the GPU check runs it on cuda)")
     common.add_common_args(p)
+    p.add_argument("--main-jobs", nargs="*", default=[], metavar="LABEL=FILE",
+                   help="raw files of `python -m benchmarks main_job` runs to tabulate (e.g. cold=a.json)")
+    p.add_argument("--note", nargs="*", default=[], help="lines added to the report")
     common.add_raw_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
     raw = common.raw_results(args, NAME, lambda: measure(args))
+    if args.main_jobs:
+        raw["main_job"] = main_job_rows(dict(a.split("=", 1) for a in args.main_jobs))
+    if args.note:
+        raw["notes"] = list(args.note)
+    if args.main_jobs or args.note:
+        Path(args.raw or common.raw_path(NAME, args.quick)).write_text(json.dumps(raw, indent=1, default=str))
     common.finish(args, NAME, report(raw, info, common.command(NAME, argv), args.quick))
     return 0
 

@@ -66,21 +66,19 @@ def test_compiled_renders_and_gradients_equal_eager(backbone: str) -> None:
 
 def test_the_decision_and_its_reasons(monkeypatch) -> None:
     cpu = torch.device("cpu")
-    assert decide_compile("off", cpu, 10**6) == (False, "off")
+    least = MIN_COMPILED_STEPS["stylization"]
+    assert decide_compile("off", cpu, 10**6, least) == (False, "off")
     monkeypatch.setattr(compiled_mod, "compiler_missing", lambda device: None)
-    assert decide_compile("auto", cpu, MIN_COMPILED_STEPS) == (True, "on")
+    assert decide_compile("auto", cpu, least, least) == (True, "on")
     assert decide_compile("auto", cpu, None) == (True, "on")  # work that always pays (the viewer)
-    on, why = decide_compile("auto", cpu, 12)
-    assert not on and why == f"off (12 steps < {MIN_COMPILED_STEPS}: the compile would not pay)"
-    assert decide_compile("on", cpu, 12) == (True, "on")  # asked for: compiled however short
-    assert decide_compile("auto", cpu, 10**6, cpu_gain=False) == (False, "off (no gain measured for this stage on "
-                                                                   "a CPU)")
-    assert decide_compile("auto", torch.device("cuda"), 10**6, cpu_gain=False) == (True, "on")
-    assert decide_compile("on", cpu, 12, cpu_gain=False) == (True, "on")
+    on, why = decide_compile("auto", cpu, least - 1, least)
+    assert not on and why == f"off ({least - 1} steps < {least}: the compile would not pay)"
+    assert decide_compile("auto", cpu, 30, 60, "frames") == (False, "off (30 frames < 60: the compile would not pay)")
+    assert decide_compile("on", cpu, 1, least) == (True, "on")  # asked for: compiled however short
     monkeypatch.setattr(compiled_mod, "compiler_missing", lambda device: "no C++ compiler on the PATH")
-    assert decide_compile("auto", cpu, 10**6) == (False, "off (no C++ compiler on the PATH)")
+    assert decide_compile("auto", cpu, 10**6, least) == (False, "off (no C++ compiler on the PATH)")
     with pytest.raises(ConfigError, match=r"compile=on: no C\+\+ compiler on the PATH\. Use compile=auto"):
-        decide_compile("on", cpu, 10**6)
+        decide_compile("on", cpu, 10**6, least)
 
 
 def test_compiler_missing_names_what_to_install(monkeypatch) -> None:

@@ -33,9 +33,10 @@ log = logging.getLogger("nerfart_plugin")
 #: the compiled ``query`` of each field class (the field instance is an argument, so copies share it)
 _COMPILED: dict[type, Callable[..., dict[str, Tensor]]] = {}
 
-#: training steps below which ``compile=auto`` stays eager: the compile (seconds, more with a cold cache) would
-#: not pay for itself (BENCHMARKS.md, "A compiled field")
-MIN_COMPILED_STEPS = 200
+#: training steps below which ``compile=auto`` stays eager, per stage: the compile (seconds; about half a minute
+#: with a cold kernel cache on a CPU) against what each step saves (BENCHMARKS.md, "A compiled field": a few
+#: milliseconds of a reconstruction step, a few hundred of a stylization step)
+MIN_COMPILED_STEPS = {"reconstruction": 2000, "stylization": 50}
 
 #: video frames below which ``compile=auto`` renders eager (stage=render)
 MIN_COMPILED_FRAMES = 60
@@ -74,13 +75,11 @@ def compiler_missing(device: torch.device) -> Optional[str]:
     return f"inductor does not compile for {device.type}"
 
 
-def decide_compile(setting: str, device: torch.device, work: Optional[int] = None,
-                   minimum: int = MIN_COMPILED_STEPS, unit: str = "steps", cpu_gain: bool = True) -> tuple[bool, str]:
+def decide_compile(setting: str, device: torch.device, work: Optional[int] = None, minimum: int = 0,
+                   unit: str = "steps") -> tuple[bool, str]:
     """Whether to compile the fields (``compile`` = on | off | auto) and the reason, as recorded in
     ``metrics.json["auto"]["compile"]``. ``auto``: on where a compiler is available and the work is long enough
-    to pay for the compile (``work`` >= ``minimum`` ``unit``: training steps, video frames; None: it always is),
-    and, on a CPU, where the work gains from it at all (``cpu_gain``: False for the stylization, whose step
-    measured no faster compiled on a CPU: the guide and the grid lookups' backward dominate it)."""
+    to pay for the compile (``work`` >= ``minimum`` ``unit``: training steps, video frames; None: it always is)."""
     if setting == "off":
         return False, "off"
     missing = compiler_missing(device)
@@ -92,8 +91,6 @@ def decide_compile(setting: str, device: torch.device, work: Optional[int] = Non
         return True, "on"
     if missing:
         return False, f"off ({missing})"
-    if device.type == "cpu" and not cpu_gain:
-        return False, "off (no gain measured for this stage on a CPU)"
     if work is not None and work < minimum:
         return False, f"off ({work} {unit} < {minimum}: the compile would not pay)"
     return True, "on"

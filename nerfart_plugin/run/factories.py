@@ -27,7 +27,7 @@ from nerfart_plugin.data.rays import views_at_resolution
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data.setup import SceneSetup, decide_setup
 from nerfart_plugin.fields import occupancy_scores_opacity
-from nerfart_plugin.fields.compiled import decide_compile, set_compiled
+from nerfart_plugin.fields.compiled import MIN_COMPILED_STEPS, decide_compile, set_compiled
 from nerfart_plugin.guidance import default_negative_threshold
 from nerfart_plugin.guidance.style import Style, build_style
 from nerfart_plugin.fields.composite import RegionMask
@@ -120,7 +120,7 @@ def build_reconstruction_system(scene: SceneContext, out_dir: Optional[Path] = N
     c = scene.cfg
     system = ReconstructionSystem(c, setup or scene.setup, train_rays=scene.dm.train_rays,
                                   out_dir=str(out_dir) if out_dir is not None else None)
-    return compile_system(system, scene, c.reconstruct.steps)
+    return compile_system(system, scene, c.reconstruct.steps, "reconstruction")
 
 
 def load_renderer_state(ckpt_path: Path, scene: Optional[SceneContext] = None) -> dict[str, torch.Tensor]:
@@ -170,15 +170,15 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
     system = StylizationSystem(c, scene.setup, style, source_state, views, settings=sc,
                                out_dir=str(out_dir) if out_dir is not None else None,
                                region=bound_region(scene, region_from_config(c.region)))
-    return compile_system(system, scene, sc.steps, cpu_gain=False)
+    return compile_system(system, scene, sc.steps, "stylization")
 
 
-def compile_system(system: Any, scene: SceneContext, steps: int, cpu_gain: bool = True) -> Any:
-    """``system`` with its fields compiled where the ``compile`` setting says so for a run of ``steps`` steps
-    (:func:`~nerfart_plugin.fields.compiled.decide_compile`); what was decided is ``system.compile_choice``,
+def compile_system(system: Any, scene: SceneContext, steps: int, stage: str) -> Any:
+    """``system`` with its fields compiled where the ``compile`` setting says so for a ``stage`` (reconstruction |
+    stylization) of ``steps`` steps (:func:`~nerfart_plugin.fields.compiled.decide_compile`); what was decided is ``system.compile_choice``,
     recorded in the run's ``metrics.json``."""
     on, system.compile_choice = decide_compile(scene.cfg.compile, torch.device(scene.device), steps,
-                                               cpu_gain=cpu_gain)
+                                               MIN_COMPILED_STEPS[stage])
     set_compiled(system, on)
     log.info("compile: %s", system.compile_choice)
     return system
