@@ -298,7 +298,8 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
              f"{ct['warm']['no_grad_s']:.1f} + {ct['warm']['training_s']:.1f} s."]
     if raw.get("main_job"):
         body += main_job_lines(raw["main_job"])
-    body += [""] + list(raw.get("notes", []))
+    for note in raw.get("notes", []):
+        body += ["", note]
     return common.section(NAME, "A compiled field", cmd, info, body, quick)
 
 

@@ -29,20 +29,36 @@ def _batch(R: int, seed: int = 0) -> dict:
     return {"rays_o": o, "rays_d": d, "near": torch.full((R,), 1.0), "far": torch.full((R,), 4.0)}
 
 
-def _pair(backbone: str, **kw: object) -> tuple[VolumeRenderer, VolumeRenderer]:
+FREQUENCY = {"name": "frequency", "n_freqs": 4}
+
+
+def _pair(backbone: str, encoding: dict = GRID, **kw: object) -> tuple[VolumeRenderer, VolumeRenderer]:
     torch.manual_seed(0)
-    eager = VolumeRenderer(build_field({"name": backbone, **SMALL, **kw}, GRID, bound=1.0), num_samples=16)
+    eager = VolumeRenderer(build_field({"name": backbone, **SMALL, **kw}, encoding, bound=1.0), num_samples=16)
     comp = copy.deepcopy(eager)
     assert set_compiled(comp) == 1 and comp.field.compiled and not eager.field.compiled
     return eager, comp
 
 
+@pytest.mark.parametrize("backbone", ["volsdf", "neus"])
+def test_an_analytic_gradient_field_stays_eager(backbone: str) -> None:
+    """The frequency encoding's SDF fields take d sdf / dx by autograd inside the query (grad_type=auto ->
+    analytic), which compiled graphs do not support: they are not compiled, and train as before."""
+    field = build_field({"name": backbone, **SMALL}, FREQUENCY, bound=1.0)
+    r = VolumeRenderer(field, num_samples=16)
+    assert field.grad_type == "analytic" and set_compiled(r) == 0 and not field.compiled
+    r.train()
+    out = r(_batch(24), perturb=True)
+    (out["rgb"].square().mean() + sum(out["regularizers"].values())).backward()
+    assert all(p.grad is not None for p in field.geo_net.parameters())
+
+
 @needs_compiler
-@pytest.mark.parametrize("backbone", ["nerf", "volsdf", "neus"])
-def test_compiled_renders_and_gradients_equal_eager(backbone: str) -> None:
+@pytest.mark.parametrize("backbone,encoding", [("nerf", GRID), ("volsdf", GRID), ("neus", GRID), ("nerf", FREQUENCY)])
+def test_compiled_renders_and_gradients_equal_eager(backbone: str, encoding: dict) -> None:
     """No-grad renders (two batch sizes: the compile is shape-dynamic), with and without normals, and one
     training step's loss and parameter gradients agree with the eager field's to float rounding."""
-    eager, comp = _pair(backbone)
+    eager, comp = _pair(backbone, encoding)
     compiled_before = torch._dynamo.utils.counters["stats"]["unique_graphs"]
     with torch.no_grad():
         for R, normals in ((48, True), (37, False)):

@@ -105,11 +105,11 @@ def leaf_fields(module: nn.Module) -> list[nn.Module]:
 
 
 def set_compiled(module: nn.Module, on: bool = True) -> int:
-    """Set the ``compiled`` flag of every leaf field inside ``module`` (a field, a renderer, a system); returns how
-    many. The compile itself happens at each field class's first evaluation (and once more per grad mode)."""
+    """Set the ``compiled`` flag of every leaf field inside ``module`` (a field, a renderer, a system) that is
+    ``compilable`` (an SDF field with the analytic gradient is not: it stays eager); returns how many. The compile itself happens at each field class's first evaluation (and once more per grad mode)."""
     if on:
         use_cache_dir()
-    fields = leaf_fields(module)
+    fields = [f for f in leaf_fields(module) if getattr(f, "compilable", True)]
     for f in fields:
         f.compiled = on
     return len(fields)

@@ -47,6 +47,9 @@ class Field(nn.Module):
     alpha_lookahead: int = 0
     #: evaluate ``query`` compiled (:mod:`nerfart_plugin.fields.compiled`; the ``compile`` setting sets it)
     compiled: bool = False
+    #: whether ``query`` may run compiled: False for a field that takes autograd inside it (an analytic SDF
+    #: gradient: compiled graphs honour neither its ``enable_grad`` under a no-grad caller nor its double backward)
+    compilable: bool = True
 
     # ---- what the renderer calls ----------------------------------------------------------
     def forward(self, x: Tensor, d: Tensor) -> dict[str, Tensor]:  # pragma: no cover

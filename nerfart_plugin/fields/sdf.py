@@ -81,6 +81,7 @@ class SDFField(NeuralField):
         if grad_type == "auto":
             grad_type = "finite_difference" if self.encoding.slow_double_backward else "analytic"
         self.grad_type = grad_type
+        self.compilable = grad_type != "analytic"  # autograd inside the query (see Field.compilable)
         self.fd_eps = float(fd_eps) if fd_eps is not None else 1e-3 * self.bound
         self.register_buffer("_tetra", torch.tensor(self._TETRA), persistent=False)
         self.radius = float(radius) if radius is not None else 0.5 * self.bound

@@ -179,7 +179,8 @@ def compile_system(system: Any, scene: SceneContext, steps: int, stage: str) -> 
     recorded in the run's ``metrics.json``."""
     on, system.compile_choice = decide_compile(scene.cfg.compile, torch.device(scene.device), steps,
                                                MIN_COMPILED_STEPS[stage])
-    set_compiled(system, on)
+    if on and set_compiled(system, on) == 0:
+        system.compile_choice = "off (no field here can be compiled: an analytic SDF gradient stays eager)"
     log.info("compile: %s", system.compile_choice)
     return system
 
