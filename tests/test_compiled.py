@@ -59,7 +59,6 @@ def test_compiled_renders_and_gradients_equal_eager(backbone: str, encoding: dic
     """No-grad renders (two batch sizes: the compile is shape-dynamic), with and without normals, and one
     training step's loss and parameter gradients agree with the eager field's to float rounding."""
     eager, comp = _pair(backbone, encoding)
-    compiled_before = torch._dynamo.utils.counters["stats"]["unique_graphs"]
     with torch.no_grad():
         for R, normals in ((48, True), (37, False)):
             a, b = eager.march(_batch(R), with_normals=normals), comp.march(_batch(R), with_normals=normals)
@@ -74,7 +73,7 @@ def test_compiled_renders_and_gradients_equal_eager(backbone: str, encoding: dic
         loss.backward()
         losses.append(float(loss.detach()))
     assert losses[1] == pytest.approx(losses[0], rel=1e-5)
-    assert comp.field.compiled and torch._dynamo.utils.counters["stats"]["unique_graphs"] > compiled_before
+    assert comp.field.compiled and type(comp.field) in compiled_mod._COMPILED  # the compiled query was taken
     for (name, pa), (_, pb) in zip(eager.named_parameters(), comp.named_parameters()):
         if pa.grad is not None:
             torch.testing.assert_close(pb.grad, pa.grad, rtol=1e-3, atol=1e-6, msg=name)
