@@ -142,12 +142,11 @@ def frame(folder: Path, reps: int, side: int, device: str = "cpu") -> dict[str, 
 def reconstruction_steps(overrides: list[str], steps: int) -> dict[str, Any]:  # on the overrides' device
     """A reconstruction step's parts (ms), eager and compiled systems alternating step by step."""
     import lightning as L
-    import torch
 
+    from benchmarks.step_split import timed_step
     from nerfart_plugin.fields.compiled import set_compiled
     from nerfart_plugin.run.factories import build_reconstruction_system, build_scene
     from nerfart_plugin.systems.base import adam, param_groups
-    from nerfart_plugin.systems.loss_terms import weighted_sum
 
     scene = build_scene(common.compose(overrides))
     systems = {}
@@ -160,20 +159,9 @@ def reconstruction_steps(overrides: list[str], steps: int) -> dict[str, Any]:  #
     parts: dict[str, dict[str, list[float]]] = {k: {"forward": [], "backward": [], "optimizer": []} for k in systems}
     for step in range(steps + 2):
         for name, (system, opt) in systems.items():
-            torch.manual_seed(step)
-            batch = system.sample_batch(step)
-            t0 = time.perf_counter()
-            out = system.renderer(batch, perturb=True)
-            terms, weights = system.losses(out, batch)
-            loss = weighted_sum(terms, weights, step, "reconstruct")
-            t1 = time.perf_counter()
-            opt.zero_grad()
-            loss.backward()
-            t2 = time.perf_counter()
-            opt.step()
-            t3 = time.perf_counter()
+            seconds = timed_step(system, opt, step)
             if step >= 2:  # the compile happens in the first steps
-                for k, v in zip(("forward", "backward", "optimizer"), (t1 - t0, t2 - t1, t3 - t2)):
+                for k, v in seconds.items():
                     parts[name][k].append(1e3 * v)
     out = {name: {k: statistics.median(v) for k, v in p.items()} for name, p in parts.items()}
     for name in out:

@@ -37,28 +37,35 @@ QUICK = ["data.resolution=48"]
 def time_steps(system: Any, optimizer: Any, steps: int, warmup: int) -> dict[str, float]:
     """Median milliseconds of forward (render + loss), backward and optimizer step over ``steps`` steps
     (after ``warmup`` untimed ones) of ``system``'s own ray draws and losses."""
+    parts: dict[str, list[float]] = {"forward": [], "backward": [], "optimizer": []}
+    for step in range(warmup + steps):
+        seconds = timed_step(system, optimizer, step)
+        if step >= warmup:
+            for k in parts:
+                parts[k].append(1e3 * seconds[k])
+    return {k: statistics.median(v) for k, v in parts.items()}
+
+
+def timed_step(system: Any, optimizer: Any, step: int) -> dict[str, float]:
+    """One reconstruction step of ``system`` (its own ray draw, seeded by ``step``, and losses): the seconds of
+    its forward (render + loss), backward and optimizer step."""
     import torch
 
     from nerfart_plugin.systems.loss_terms import weighted_sum
 
-    parts: dict[str, list[float]] = {"forward": [], "backward": [], "optimizer": []}
-    for step in range(warmup + steps):
-        torch.manual_seed(step)
-        batch = system.sample_batch(step)
-        t0 = time.perf_counter()
-        out = system.renderer(batch, perturb=True)
-        terms, weights = system.losses(out, batch)
-        loss = weighted_sum(terms, weights, step, "reconstruct")
-        t1 = time.perf_counter()
-        optimizer.zero_grad()
-        loss.backward()
-        t2 = time.perf_counter()
-        optimizer.step()
-        t3 = time.perf_counter()
-        if step >= warmup:
-            for k, seconds in zip(parts, (t1 - t0, t2 - t1, t3 - t2)):
-                parts[k].append(1e3 * seconds)
-    return {k: statistics.median(v) for k, v in parts.items()}
+    torch.manual_seed(step)
+    batch = system.sample_batch(step)
+    t0 = time.perf_counter()
+    out = system.renderer(batch, perturb=True)
+    terms, weights = system.losses(out, batch)
+    loss = weighted_sum(terms, weights, step, "reconstruct")
+    t1 = time.perf_counter()
+    optimizer.zero_grad()
+    loss.backward()
+    t2 = time.perf_counter()
+    optimizer.step()
+    t3 = time.perf_counter()
+    return {"forward": t1 - t0, "backward": t2 - t1, "optimizer": t3 - t2}
 
 
 def measure(sides: list[int], steps: int, warmup: int, extra: list[str]) -> list[dict[str, Any]]:

@@ -28,6 +28,8 @@ from typing import Any, Callable, Optional
 import torch
 from torch import Tensor, nn
 
+from nerfart_plugin.fields.field import Field
+
 log = logging.getLogger("nerfart_plugin")
 
 #: the compiled ``query`` of each field class (the field instance is an argument, so copies share it)
@@ -96,20 +98,18 @@ def decide_compile(setting: str, device: torch.device, work: Optional[int] = Non
     return True, "on"
 
 
-def leaf_fields(module: nn.Module) -> list[nn.Module]:
-    """The fields inside ``module`` that evaluate points themselves (composites evaluate their parts)."""
-    from nerfart_plugin.fields.composite import CompositeField
-    from nerfart_plugin.fields.field import Field
-
-    return [m for m in module.modules() if isinstance(m, Field) and not isinstance(m, CompositeField)]
+def compilable_fields(module: nn.Module) -> list[Field]:
+    """The fields inside ``module`` whose ``query`` may be compiled (``Field.compilable``: not a composite, which
+    evaluates its parts, nor a field that takes autograd inside its query)."""
+    return [m for m in module.modules() if isinstance(m, Field) and m.compilable]
 
 
 def set_compiled(module: nn.Module, on: bool = True) -> int:
-    """Set the ``compiled`` flag of every leaf field inside ``module`` (a field, a renderer, a system) that is
-    ``compilable`` (an SDF field with the analytic gradient is not: it stays eager); returns how many. The compile itself happens at each field class's first evaluation (and once more per grad mode)."""
+    """Set the ``compiled`` flag of every :func:`compilable_fields` inside ``module`` (a field, a renderer, a
+    system); returns how many (an SDF field with the analytic gradient is not among them: it stays eager). The compile itself happens at each field class's first evaluation (and once more per grad mode)."""
     if on:
         use_cache_dir()
-    fields = [f for f in leaf_fields(module) if getattr(f, "compilable", True)]
+    fields = compilable_fields(module)
     for f in fields:
         f.compiled = on
     return len(fields)
@@ -146,12 +146,6 @@ def warm_up(field: nn.Module, device: Any, with_normal: bool = False) -> float:
     x = torch.zeros(64, 3, device=device)
     d = torch.nn.functional.normalize(torch.ones(64, 3, device=device), dim=-1)
     with torch.no_grad():
-        for f in leaf_fields(field):
+        for f in compilable_fields(field):
             evaluate(f, x, d, with_normal=with_normal)
     return time.perf_counter() - t0
-
-
-def compiled_fields(module: nn.Module) -> list[str]:
-    """Names of the field classes inside ``module`` that evaluate compiled (for reports)."""
-    return sorted({type(f).__name__ for f in leaf_fields(module) if getattr(f, "compiled", False)})
-

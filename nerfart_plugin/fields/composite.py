@@ -96,6 +96,8 @@ class CompositeField(Field):
     and :meth:`regularizers` read each field's own.
     """
 
+    compilable = False  # its parts are compiled instead (its own query selects samples by the regions)
+
     def __init__(self, source: Field, parts: Sequence[tuple[Field, float, RegionMask]]) -> None:
         super().__init__()
         if not parts:
