@@ -22,12 +22,14 @@ import logging
 import os
 import platform
 import shutil
+import time
 from pathlib import Path
 from typing import Any, Callable, Optional
 
 import torch
 from torch import Tensor, nn
 
+from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.field import Field
 
 log = logging.getLogger("nerfart_plugin")
@@ -87,8 +89,6 @@ def decide_compile(setting: str, device: torch.device, work: Optional[int] = Non
     missing = compiler_missing(device)
     if setting == "on":
         if missing:
-            from nerfart_plugin.errors import ConfigError
-
             raise ConfigError(f"compile=on: {missing}. Use compile=auto (compiles where it can) or compile=off.")
         return True, "on"
     if missing:
@@ -106,7 +106,8 @@ def compilable_fields(module: nn.Module) -> list[Field]:
 
 def set_compiled(module: nn.Module, on: bool = True) -> int:
     """Set the ``compiled`` flag of every :func:`compilable_fields` inside ``module`` (a field, a renderer, a
-    system); returns how many (an SDF field with the analytic gradient is not among them: it stays eager). The compile itself happens at each field class's first evaluation (and once more per grad mode)."""
+    system); returns how many (an SDF field with the analytic gradient is not among them: it stays eager). The
+    compile itself happens at each field class's first compiled evaluation (and once more per grad mode)."""
     if on:
         use_cache_dir()
     fields = compilable_fields(module)
@@ -128,6 +129,11 @@ def evaluate(field: nn.Module, x: Tensor, d: Tensor, with_normal: bool = True) -
     docstring); a field whose compile fails is evaluated eagerly from then on, with the reason logged once."""
     if not getattr(field, "compiled", False) or x.shape[0] < 2:
         return field.query(x, d, with_normal=with_normal)
+    return _compiled_or_eager(field, x, d, with_normal)
+
+
+def _compiled_or_eager(field: nn.Module, x: Tensor, d: Tensor, with_normal: bool) -> dict[str, Tensor]:
+    """The compiled query of ``field``; on a compiler failure the eager one, the field marked uncompiled."""
     try:
         return compiled_query(type(field))(field, x, d, with_normal=with_normal)
     except torch._dynamo.exc.TorchDynamoException as exc:  # the compiler's own failures (a field's errors recur eager)
@@ -138,14 +144,12 @@ def evaluate(field: nn.Module, x: Tensor, d: Tensor, with_normal: bool = True) -
 
 
 def warm_up(field: nn.Module, device: Any, with_normal: bool = False) -> float:
-    """Compile ``field``'s no-grad query now (a few points), e.g. in a viewer's background thread while it serves
-    eager frames; returns the seconds it took."""
-    import time
-
+    """Compile the no-grad query of the compilable fields in ``field`` now (a few points), whatever their
+    ``compiled`` flag, e.g. in a viewer's background thread while it serves eager frames; returns the seconds."""
     t0 = time.perf_counter()
     x = torch.zeros(64, 3, device=device)
     d = torch.nn.functional.normalize(torch.ones(64, 3, device=device), dim=-1)
     with torch.no_grad():
         for f in compilable_fields(field):
-            evaluate(f, x, d, with_normal=with_normal)
+            _compiled_or_eager(f, x, d, with_normal)
     return time.perf_counter() - t0

@@ -175,8 +175,8 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
 
 def compile_system(system: Any, scene: SceneContext, steps: int, stage: str) -> Any:
     """``system`` with its fields compiled where the ``compile`` setting says so for a ``stage`` (reconstruction |
-    stylization) of ``steps`` steps (:func:`~nerfart_plugin.fields.compiled.decide_compile`); what was decided is ``system.compile_choice``,
-    recorded in the run's ``metrics.json``."""
+    stylization) of ``steps`` steps (:func:`~nerfart_plugin.fields.compiled.decide_compile`); what was decided is
+    ``system.compile_choice``, recorded in the run's ``metrics.json``."""
     on, system.compile_choice = decide_compile(scene.cfg.compile, torch.device(scene.device), steps,
                                                MIN_COMPILED_STEPS[stage])
     if on and set_compiled(system, on) == 0:

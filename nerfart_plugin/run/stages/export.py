@@ -48,11 +48,11 @@ class ExportStage:
         ckpt = run.checkpoint
         stem = ckpt.parent / "mesh" / f"export-{ckpt.stem}-r{self.cfg.export.resolution}{run.tag}"
         with run_lock(stem, self.cfg.lock_timeout):  # two exports of one output: the second waits, then reuses
-            summary = {"mesh": str(stem), "vertices": self.mesh(run, stem, export_key(run, self.cfg))}
+            mesh_key, splat_key = export_keys(run, self.cfg)
+            summary = {"mesh": str(stem), "vertices": self.mesh(run, stem, mesh_key)}
             if self.cfg.export.splats:
                 summary["splats"] = self.splats(run, ckpt.parent / "splats" /
-                                                f"{stem.name.replace('export-', 'splats-')}.ply",
-                                                export_key(run, self.cfg, splats=True))
+                                                f"{stem.name.replace('export-', 'splats-')}.ply", splat_key)
         return StageResult(ckpt, summary)
 
     def mesh(self, run: Run, stem: Path, key: str) -> Optional[int]:
@@ -87,11 +87,13 @@ class ExportStage:
         return report
 
 
-def export_key(run: Run, cfg: Any, splats: bool = False) -> str:
-    """What a run's exported files depend on: its field's tensors (a blend's or region's composite included),
-    the blend, the capture's frame (normalization) and the export settings that change results: the mesh's, and
-    with ``splats`` the splat fit's too (and the seed it draws from)."""
-    settings = {k: v for k, v in result_settings(cfg.export).items() if splats or not k.startswith("splat")}
-    return config_hash({"field": tensors_hash(run.renderer.field), "blend": run.tag, "export": settings,
-                        "frame": [list(map(float, row)) for row in run.cameras.normalization],
-                        "seed": cfg.seed if splats else None}, n=64)
+def export_keys(run: Run, cfg: Any) -> tuple[str, str]:
+    """What a run's exported files depend on, (meshes, splats): its field's tensors (a blend's or region's
+    composite included), the blend, the capture's frame (normalization) and the export settings that change
+    results: the mesh's, and for the splats the splat fit's too (and the seed it draws from)."""
+    settings = result_settings(cfg.export)
+    common = {"field": tensors_hash(run.renderer.field), "blend": run.tag,
+              "frame": [list(map(float, row)) for row in run.cameras.normalization]}
+    mesh = {k: v for k, v in settings.items() if not k.startswith("splat")}
+    return (config_hash({**common, "export": mesh, "seed": None}, n=64),
+            config_hash({**common, "export": settings, "seed": cfg.seed}, n=64))
