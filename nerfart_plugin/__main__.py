@@ -144,5 +144,24 @@ def main() -> None:
         sys.exit(1)
 
 
+def _exit_interrupted_at_once() -> None:
+    """``python -m``'s exit after an interrupt: logs and streams flushed, then exit 130 without the interpreter's
+    finalization. With a normal exit, a SIGTERM that lands while the compiler's modules import ended the process
+    killed by SIGINT (-2) one time and with 130 the next (CPython's own handling of a KeyboardInterrupt it has seen;
+    seen under ``-m`` only, never when the same code runs as a script). Finished work is on disk already
+    (checkpoints and caches are written atomically); the compiler's worker processes exit with their parent."""
+    import os
+
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        stream.flush()
+    os._exit(RunInterrupted.exit_code)
+
+
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except SystemExit as exc:
+        if exc.code == RunInterrupted.exit_code:
+            _exit_interrupted_at_once()
+        raise
