@@ -67,6 +67,30 @@ def test_the_verdict_reads_the_calibrated_thresholds():
     other = verdict(0.9, "imagenet", cal.steps + 5, cal.strength)
     assert other["verdict"] == "uncalibrated" and f"preview.steps={cal.steps}" in other["why"]
     assert verdict(0.9, "imagenet", cal.steps, 1.0)["verdict"] == "uncalibrated"
+    assert verdict(0.9, "imagenet", cal.steps, cal.strength, cal.silhouette)["verdict"] == "likely to work"
+    held_less = verdict(0.9, "imagenet", cal.steps, cal.strength, 0.0)
+    assert held_less["verdict"] == "uncalibrated" and "preview.lambda_silhouette=" in held_less["why"]
+
+
+def test_the_preview_holds_the_outline_unless_told_not_to(tmp_path):
+    """The preview's steps carry the silhouette term at preview.lambda_silhouette (or the full run's own weight,
+    where that is larger); 0 leaves the full run's start as it is."""
+    from nerfart_plugin.config.validate import parse_config
+    from nerfart_plugin.run.stages.preview import preview_scene
+
+    class Scene:  # the part of a SceneContext preview_scene reads and writes
+        def __init__(self, *overrides: str) -> None:
+            self.cfg, self.plain = parse_config(tiny_cfg(tmp_path, DEFAULT_SCENE, "prompt=zebra", *overrides))
+
+        def with_config(self, plain: dict) -> "Scene":
+            out = Scene.__new__(Scene)
+            out.cfg, out.plain = parse_config(plain)
+            return out
+
+    assert preview_scene(Scene()).cfg.experiment.lambda_silhouette == 5.0
+    assert preview_scene(Scene("preview.lambda_silhouette=0")).cfg.experiment.lambda_silhouette == 0.0
+    assert preview_scene(Scene("experiment.lambda_silhouette=8")).cfg.experiment.lambda_silhouette == 8.0
+    assert Scene().cfg.experiment.lambda_silhouette == 0.0  # the full run's own: the paper's (off)
 
 
 @pytest.mark.slow
@@ -80,7 +104,8 @@ def test_the_preview_is_the_full_runs_start_and_shows_the_full_run_once_it_exist
 
     base = [*TINY_STYLE, "prompt=zebra", "stylize.resolution=24", "stylize.video_frames=0", "export.enabled=false",
             "stylize.steps=3"]
-    preview_cfg = tiny_cfg(shared_runs, DEFAULT_SCENE, *base, "stage=preview", "preview.steps=3", "preview.strength=1")
+    preview_cfg = tiny_cfg(shared_runs, DEFAULT_SCENE, *base, "stage=preview", "preview.steps=3", "preview.strength=1",
+                           "preview.lambda_silhouette=0")
     preview = Path(run(preview_cfg)["preview"]["preview"]).parent
 
     def picture() -> tuple[int, bool]:
@@ -97,7 +122,7 @@ def test_the_preview_is_the_full_runs_start_and_shows_the_full_run_once_it_exist
     wide, has_full = picture()
     assert has_full and wide > narrow * 1.4
     dialed = Path(run(tiny_cfg(shared_runs, DEFAULT_SCENE, *base, "stage=preview", "preview.steps=3",
-                               "preview.strength=1.5"))["preview"]["preview"]).parent
+                               "preview.strength=1.5", "preview.lambda_silhouette=0"))["preview"]["preview"]).parent
     assert dialed != preview and dialed.name.startswith(preview.name.split("_")[0]) and "-s1.50" in dialed.name
     assert json.loads((dialed / "metrics.json").read_text())["strength"] == 1.5
 

@@ -362,6 +362,10 @@ class PreviewConfig(Section):
         "so the preview is the full run's start")
     strength: Float = Setting(1.5, ge=0.0, le=2.0, description="the strength the preview's views are shown at "
                               "(the dial, applied to the preview's change): > 1 shows where the full run is heading")
+    lambda_silhouette: Float = Setting(5.0, ge=0.0, le=1e4, description="weight of the silhouette term in the "
+                                       "preview's steps (experiment.lambda_silhouette, the larger of the two): "
+                                       "holds the subject's outline, which the full run keeps but a few steps "
+                                       "pushed on by the dial erase; 0: the full run's start exactly")
 
 
 class MixConfig(Section):

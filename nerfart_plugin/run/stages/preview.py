@@ -44,8 +44,9 @@ class Calibration:
 
     Attributes:
         guide: the ``guidance`` they were measured with; likely / unlikely: at or above ``likely`` "likely to
-        work", below ``unlikely`` "unlikely to work", between them "uncertain: run it"; steps / strength: the
-        ``preview.steps`` and ``preview.strength`` they were measured at (the score moves with both); record:
+        work", below ``unlikely`` "unlikely to work", between them "uncertain: run it"; steps / strength /
+        silhouette: the ``preview.steps``, ``preview.strength`` and silhouette weight they were measured at (the
+        score moves with each); record:
         what the study found (how many prompts each verdict got right), quoted in the verdict.
     """
 
@@ -54,22 +55,23 @@ class Calibration:
     unlikely: float
     steps: int
     strength: float
+    silhouette: float
     record: str
 
 
 #: the verdict's thresholds per guide, from ``python -m benchmarks preview`` (BENCHMARKS.md, "The preview")
 CALIBRATION: dict[str, Calibration] = {
-    "imagenet": Calibration("imagenet", likely=0.19, unlikely=0.155, steps=10, strength=1.5,
+    "imagenet": Calibration("imagenet", likely=0.19, unlikely=0.155, steps=10, strength=1.5, silhouette=5.0,
                             record="set on 15 prompts, 12 of which work in a full run: 9 of the 9 it decided "
                                    "were right, 6 uncertain"),
 }
 
 
 def verdict(direction: Optional[float], guide: str, steps: Optional[int] = None,
-            strength: Optional[float] = None) -> dict[str, Any]:
+            strength: Optional[float] = None, silhouette: Optional[float] = None) -> dict[str, Any]:
     """The preview's verdict on its prompt: ``{"verdict": "likely to work" | "unlikely to work" | "uncertain: run
-    it" | "uncalibrated", "why": ..., "score": direction}``; ``steps`` / ``strength``, where given, must be the
-    calibration's."""
+    it" | "uncalibrated", "why": ..., "score": direction}``; ``steps`` / ``strength`` / ``silhouette`` (the
+    preview's silhouette weight), where given, must be the calibration's."""
     cal = CALIBRATION.get(guide)
     if direction is None:
         return {"verdict": "uncalibrated", "why": "no prompt: a style picture alone has no directional score",
@@ -77,10 +79,12 @@ def verdict(direction: Optional[float], guide: str, steps: Optional[int] = None,
     if cal is None:
         return {"verdict": "uncalibrated", "why": f"the verdict is calibrated for guidance={', '.join(CALIBRATION)} "
                 f"only; compare guidance={guide} previews by their directional similarity", "score": direction}
-    if (steps is not None and steps != cal.steps) or (strength is not None and abs(strength - cal.strength) > 1e-9):
+    if ((steps is not None and steps != cal.steps) or (strength is not None and abs(strength - cal.strength) > 1e-9)
+            or (silhouette is not None and abs(silhouette - cal.silhouette) > 1e-9)):
         return {"verdict": "uncalibrated", "score": direction,
-                "why": f"the verdict is calibrated at preview.steps={cal.steps} preview.strength={cal.strength:g}; "
-                       "compare these previews by their directional similarity"}
+                "why": f"the verdict is calibrated at preview.steps={cal.steps} preview.strength={cal.strength:g} "
+                       f"preview.lambda_silhouette={cal.silhouette:g}; compare these previews by their directional "
+                       "similarity"}
     if direction >= cal.likely:
         word, rule = "likely to work", f">= {cal.likely:.3f}"
     elif direction < cal.unlikely:
@@ -115,6 +119,11 @@ class PreviewStage(StylizeStage):
         """The dial the views are shown at (1 inside a region: the composite is shown as trained)."""
         return 1.0 if self.region is not None else float(self.scene.cfg.preview.strength)
 
+    @property
+    def silhouette(self) -> float:
+        """The silhouette term's weight in the preview's steps."""
+        return float(self.scene.cfg.experiment.lambda_silhouette)
+
     def outputs(self, system: Any, fit: FitResult) -> dict[str, Any]:
         dialed = None
         if self.strength != 1.0:
@@ -122,9 +131,10 @@ class PreviewStage(StylizeStage):
         with self.clock.part("evaluation"):
             metrics = self.heldout_metrics(system, renderer=dialed)
         metrics["verdict"] = verdict(metrics.get("clip_directional_similarity"), self.scene.cfg.guidance.name,
-                                     fit.steps, self.strength)
+                                     fit.steps, self.strength, self.silhouette)
         metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "style": self.style.name,
                         "steps": fit.steps, "resolution": self.settings.resolution, "strength": self.strength,
+                        "lambda_silhouette": self.silhouette,
                         "train_seconds_this_process": fit.seconds, "full_run": str(self.full_run.path),
                         "source_checkpoint": str(Path(self.source).resolve()), "stamp": self.style.stamp or None})
         metrics["picture_has_full_run"] = draw_preview(self.folder.path, metrics, self.full_run)
@@ -153,13 +163,16 @@ class PreviewStage(StylizeStage):
 
 def preview_scene(scene: SceneContext) -> SceneContext:
     """``scene`` under the preview's settings: ``preview.steps`` steps at ``preview.resolution`` (auto: the
-    stylization's own) in place of the stylization's, no video, no saved renders, no meshes."""
+    stylization's own) in place of the stylization's, the silhouette term at ``preview.lambda_silhouette`` at
+    least, no video, no saved renders, no meshes."""
     plain = copy.deepcopy(scene.plain)
     pc = scene.cfg.preview
     update = {"steps": pc.steps, "epochs": None, "video_frames": 0, "render_every": 0}
     if pc.resolution != "auto":
         update["resolution"] = pc.resolution
     plain["stylize"].update(update)
+    experiment = plain["experiment"]
+    experiment["lambda_silhouette"] = max(float(experiment["lambda_silhouette"]), float(pc.lambda_silhouette))
     plain["export"]["enabled"] = False
     return scene.with_config(plain)
 
