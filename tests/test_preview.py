@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from PIL import Image
@@ -66,8 +67,10 @@ def test_the_verdict_reads_the_calibrated_thresholds():
     assert verdict(0.9, "imagenet", cal.steps, cal.strength)["verdict"] == "likely to work"
     other = verdict(0.9, "imagenet", cal.steps + 5, cal.strength)
     assert other["verdict"] == "uncalibrated" and f"preview.steps={cal.steps}" in other["why"]
-    assert verdict(0.9, "imagenet", cal.steps, 1.0)["verdict"] == "uncalibrated"
-    assert verdict(0.9, "imagenet", cal.steps, cal.strength, cal.silhouette)["verdict"] == "likely to work"
+    assert verdict(0.9, "imagenet", cal.steps, cal.strength + 0.5)["verdict"] == "uncalibrated"
+    assert verdict(0.9, "imagenet", cal.steps, cal.strength, cal.silhouette, cal.resolution)["verdict"] == \
+        "likely to work"
+    assert verdict(0.9, "imagenet", cal.steps, cal.strength, cal.silhouette, 256)["verdict"] == "uncalibrated"
     held_less = verdict(0.9, "imagenet", cal.steps, cal.strength, 0.0)
     assert held_less["verdict"] == "uncalibrated" and "preview.lambda_silhouette=" in held_less["why"]
 
@@ -76,9 +79,11 @@ def test_the_preview_holds_the_outline_unless_told_not_to(tmp_path):
     """The preview's steps carry the silhouette term at preview.lambda_silhouette (or the full run's own weight,
     where that is larger); 0 leaves the full run's start as it is."""
     from nerfart_plugin.config.validate import parse_config
-    from nerfart_plugin.run.stages.preview import preview_scene
+    from nerfart_plugin.run.stages.preview import PREVIEW_LONG_SIDE, preview_scene
 
     class Scene:  # the part of a SceneContext preview_scene reads and writes
+        scene = SimpleNamespace(height=256, width=192)
+
         def __init__(self, *overrides: str) -> None:
             self.cfg, self.plain = parse_config(tiny_cfg(tmp_path, DEFAULT_SCENE, "prompt=zebra", *overrides))
 
@@ -91,6 +96,10 @@ def test_the_preview_holds_the_outline_unless_told_not_to(tmp_path):
     assert preview_scene(Scene("preview.lambda_silhouette=0")).cfg.experiment.lambda_silhouette == 0.0
     assert preview_scene(Scene("experiment.lambda_silhouette=8")).cfg.experiment.lambda_silhouette == 8.0
     assert Scene().cfg.experiment.lambda_silhouette == 0.0  # the full run's own: the paper's (off)
+    full_size = Scene("stylize.resolution=auto")  # the images' long side: 256
+    assert preview_scene(full_size).cfg.stylize.resolution == PREVIEW_LONG_SIDE
+    assert preview_scene(Scene("stylize.resolution=96")).cfg.stylize.resolution == 96  # never larger
+    assert preview_scene(Scene("preview.resolution=200")).cfg.stylize.resolution == 200
 
 
 @pytest.mark.slow

@@ -39,7 +39,7 @@ AUTO_SETTINGS: dict[str, str] = {
     "stylize.negatives": "run.factories.stylize_settings",
     "stylize.negative_threshold": "run.factories.stylize_settings",
     "style_image.layers": "guidance.style_image.style_layers (the perceptual network's family)",
-    "preview.resolution": "run.stages.preview.preview_scene (the stylization's own)",
+    "preview.resolution": "run.stages.preview.preview_scene (128 px, at most the stylization's)",
     # outputs and sweeps
     "render.resolution": "results.run.Run.camera_path (stage=render; recorded in the render folder's summary)",
     "objective": "run.sweep.objective (a sweep's result, not a run's)",

@@ -355,17 +355,17 @@ class PreviewConfig(Section):
     """``preview``: ``stage=preview``, the first steps of the stylization a full run would make (same settings,
     same views, same schedule), shown through the strength dial, with a verdict on the prompt in words."""
 
-    steps: Int = Setting(10, ge=1, le=10_000, description="optimizer steps of the preview: the full run's first "
-                         "steps (one view each)")
+    steps: Int = Setting(40, ge=1, le=10_000, description="optimizer steps of the preview (one view each), with "
+                         "the full run's losses, learning rates, views and seeds")
     resolution: Union[Literal["auto"], Annotated[Int, Field(ge=16, le=1024)]] = Setting(
-        "auto", description="long side (pixels) of the preview's views; auto: the full run's (stylize.resolution), "
-        "so the preview is the full run's start")
-    strength: Float = Setting(1.5, ge=0.0, le=2.0, description="the strength the preview's views are shown at "
-                              "(the dial, applied to the preview's change): > 1 shows where the full run is heading")
+        "auto", description="long side (pixels) of the preview's views; auto: 128, or the full run's "
+        "(stylize.resolution) where that is smaller")
+    strength: Float = Setting(1.0, ge=0.0, le=2.0, description="the strength the preview's views are shown at "
+                              "(the dial, applied to the preview's change): > 1 pushes the change on")
     lambda_silhouette: Float = Setting(5.0, ge=0.0, le=1e4, description="weight of the silhouette term in the "
                                        "preview's steps (experiment.lambda_silhouette, the larger of the two): "
-                                       "holds the subject's outline, which the full run keeps but a few steps "
-                                       "pushed on by the dial erase; 0: the full run's start exactly")
+                                       "holds the subject's outline, which the full run keeps and a short run "
+                                       "without it loses; 0: the full run's losses only")
 
 
 class MixConfig(Section):

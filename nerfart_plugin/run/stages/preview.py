@@ -1,11 +1,14 @@
-"""``stage=preview``: the start of the full stylization, shown through the strength dial, with a verdict in words.
+"""``stage=preview``: a short, small version of the full stylization, with a verdict in words.
 
-A preview is the full run's first ``preview.steps`` steps: the same source, style, losses, views, resolution
-(``preview.resolution=auto``) and per-step seeds, so its field is the field the full run passes through. Its
-held-out views are rendered with the change so far scaled by ``preview.strength`` (the strength dial, applied to
-the preview: θ_src + s·(θ_preview − θ_src)), which shows the direction the full run takes further. No video, no
-meshes. ``preview.png`` shows source | preview | the full run's view where that run has finished (drawn again
-when the preview is asked for after the full run), under the verdict.
+A preview runs the full run's own recipe (the same source, style, losses, learning rates, views and per-step
+seeds) for ``preview.steps`` steps (40) at a smaller size (``preview.resolution=auto``: a long side of
+:data:`PREVIEW_LONG_SIDE` px, or the full run's where that is smaller), with the silhouette term holding the
+subject's outline (``preview.lambda_silhouette``). Its held-out views can be shown through the strength dial
+(``preview.strength``: θ_src + s·(θ_preview − θ_src)). No video, no meshes. ``preview.png`` shows source | preview
+| the full run's view where that run has finished (drawn again when the preview is asked for after the full run),
+under the verdict. The recipe is the one measured to resemble the full run most within a minute (BENCHMARKS.md,
+"The preview"): the full run's first steps at its own size, pushed on by the dial, resembled it less and lost the
+outline of half the study's prompts.
 
 The verdict (:func:`verdict`) reads the guide's directional similarity of the dialed views against thresholds
 calibrated on the study's prompts with the guide they were measured with (:data:`CALIBRATION`); for another
@@ -27,7 +30,7 @@ import torch
 
 from nerfart_plugin.guidance.style import Style
 from nerfart_plugin.results.blend import blended_renderer
-from nerfart_plugin.run.factories import SceneContext
+from nerfart_plugin.run.factories import SceneContext, stylize_settings
 from nerfart_plugin.run.fit import FitResult
 from nerfart_plugin.run.folders import RunFolder
 from nerfart_plugin.run.stages.base import LiveViewerFactory, StageResult
@@ -37,6 +40,11 @@ from nerfart_plugin.utils.images import image_grid, label_image, save_image, sid
 
 log = logging.getLogger("nerfart_plugin")
 
+#: the long side (px) of a preview's views with ``preview.resolution=auto`` (at most the full run's)
+PREVIEW_LONG_SIDE = 128
+#: the least long side (px) of the views in ``preview.png``
+PICTURE_LONG_SIDE = 256
+
 
 @dataclass(frozen=True)
 class Calibration:
@@ -45,8 +53,8 @@ class Calibration:
     Attributes:
         guide: the ``guidance`` they were measured with; likely / unlikely: at or above ``likely`` "likely to
         work", below ``unlikely`` "unlikely to work", between them "uncertain: run it"; steps / strength /
-        silhouette: the ``preview.steps``, ``preview.strength`` and silhouette weight they were measured at (the
-        score moves with each); record:
+        silhouette / resolution: the ``preview.steps``, ``preview.strength``, silhouette weight and long side (px)
+        they were measured at (the score moves with each); record:
         what the study found (how many prompts each verdict got right), quoted in the verdict.
     """
 
@@ -56,22 +64,25 @@ class Calibration:
     steps: int
     strength: float
     silhouette: float
+    resolution: int
     record: str
 
 
 #: the verdict's thresholds per guide, from ``python -m benchmarks preview`` (BENCHMARKS.md, "The preview")
 CALIBRATION: dict[str, Calibration] = {
-    "imagenet": Calibration("imagenet", likely=0.19, unlikely=0.155, steps=10, strength=1.5, silhouette=5.0,
+    "imagenet": Calibration("imagenet", likely=0.19, unlikely=0.155, steps=40, strength=1.0, silhouette=5.0,
+                            resolution=128,
                             record="set on 15 prompts, 12 of which work in a full run: 9 of the 9 it decided "
                                    "were right, 6 uncertain"),
 }
 
 
 def verdict(direction: Optional[float], guide: str, steps: Optional[int] = None,
-            strength: Optional[float] = None, silhouette: Optional[float] = None) -> dict[str, Any]:
+            strength: Optional[float] = None, silhouette: Optional[float] = None,
+            resolution: Optional[int] = None) -> dict[str, Any]:
     """The preview's verdict on its prompt: ``{"verdict": "likely to work" | "unlikely to work" | "uncertain: run
     it" | "uncalibrated", "why": ..., "score": direction}``; ``steps`` / ``strength`` / ``silhouette`` (the
-    preview's silhouette weight), where given, must be the calibration's."""
+    preview's silhouette weight) / ``resolution`` (its long side), where given, must be the calibration's."""
     cal = CALIBRATION.get(guide)
     if direction is None:
         return {"verdict": "uncalibrated", "why": "no prompt: a style picture alone has no directional score",
@@ -79,12 +90,13 @@ def verdict(direction: Optional[float], guide: str, steps: Optional[int] = None,
     if cal is None:
         return {"verdict": "uncalibrated", "why": f"the verdict is calibrated for guidance={', '.join(CALIBRATION)} "
                 f"only; compare guidance={guide} previews by their directional similarity", "score": direction}
-    if ((steps is not None and steps != cal.steps) or (strength is not None and abs(strength - cal.strength) > 1e-9)
-            or (silhouette is not None and abs(silhouette - cal.silhouette) > 1e-9)):
+    measured = {"preview.steps": (steps, cal.steps), "preview.strength": (strength, cal.strength),
+                "preview.lambda_silhouette": (silhouette, cal.silhouette), "preview.resolution": (resolution,
+                                                                                                  cal.resolution)}
+    if any(given is not None and abs(given - at) > 1e-9 for given, at in measured.values()):
+        at = " ".join(f"{k}={v[1]:g}" for k, v in measured.items())
         return {"verdict": "uncalibrated", "score": direction,
-                "why": f"the verdict is calibrated at preview.steps={cal.steps} preview.strength={cal.strength:g} "
-                       f"preview.lambda_silhouette={cal.silhouette:g}; compare these previews by their directional "
-                       "similarity"}
+                "why": f"the verdict is calibrated at {at}; compare these previews by their directional similarity"}
     if direction >= cal.likely:
         word, rule = "likely to work", f">= {cal.likely:.3f}"
     elif direction < cal.unlikely:
@@ -131,7 +143,7 @@ class PreviewStage(StylizeStage):
         with self.clock.part("evaluation"):
             metrics = self.heldout_metrics(system, renderer=dialed)
         metrics["verdict"] = verdict(metrics.get("clip_directional_similarity"), self.scene.cfg.guidance.name,
-                                     fit.steps, self.strength, self.silhouette)
+                                     fit.steps, self.strength, self.silhouette, self.settings.resolution)
         metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "style": self.style.name,
                         "steps": fit.steps, "resolution": self.settings.resolution, "strength": self.strength,
                         "lambda_silhouette": self.silhouette,
@@ -162,14 +174,14 @@ class PreviewStage(StylizeStage):
 
 
 def preview_scene(scene: SceneContext) -> SceneContext:
-    """``scene`` under the preview's settings: ``preview.steps`` steps at ``preview.resolution`` (auto: the
-    stylization's own) in place of the stylization's, the silhouette term at ``preview.lambda_silhouette`` at
-    least, no video, no saved renders, no meshes."""
+    """``scene`` under the preview's settings: ``preview.steps`` steps at ``preview.resolution`` (auto:
+    :data:`PREVIEW_LONG_SIDE`, at most the stylization's own) in place of the stylization's, the silhouette term
+    at ``preview.lambda_silhouette`` at least, no video, no saved renders, no meshes."""
     plain = copy.deepcopy(scene.plain)
     pc = scene.cfg.preview
-    update = {"steps": pc.steps, "epochs": None, "video_frames": 0, "render_every": 0}
-    if pc.resolution != "auto":
-        update["resolution"] = pc.resolution
+    full_size = int(stylize_settings(scene).resolution)
+    size = min(PREVIEW_LONG_SIDE, full_size) if pc.resolution == "auto" else pc.resolution
+    update = {"steps": pc.steps, "epochs": None, "video_frames": 0, "render_every": 0, "resolution": size}
     plain["stylize"].update(update)
     experiment = plain["experiment"]
     experiment["lambda_silhouette"] = max(float(experiment["lambda_silhouette"]), float(pc.lambda_silhouette))
@@ -182,13 +194,16 @@ def draw_preview(folder: Path, metrics: dict[str, Any], full_run: RunFolder) -> 
     ``full_run`` has finished, under the verdict; True when the full run's views are in it."""
     rows, with_full = [], full_run.finished
     s, steps = metrics.get("strength", 1.0), metrics.get("steps")
+    label = f"preview: {steps} steps" + ("" if s == 1.0 else f", at {s:g}x")
     for stylized in sorted((folder / "heldout").glob("stylized_*.png")):
         source = iio.imread(stylized.with_name(stylized.name.replace("stylized_", "source_")))
-        tiles = [label_image(to_uint8(source), "source"),
-                 label_image(to_uint8(iio.imread(stylized)), f"preview: {steps} steps, shown at {s:g}x")]
+        h, w = source.shape[:2]
+        scale = max(1.0, PICTURE_LONG_SIDE / max(h, w))  # small previews drawn larger, so that they can be read
+        hw = (round(h * scale), round(w * scale))
+        tiles = [label_image(_resized(source, hw), "source"), label_image(_resized(iio.imread(stylized), hw), label)]
         full = full_run.path / "heldout" / stylized.name
         if with_full and full.is_file():
-            tiles.append(label_image(_resized(iio.imread(full), source.shape[:2]), "the full run"))
+            tiles.append(label_image(_resized(iio.imread(full), hw), "the full run"))
         row = tiles[0]
         for tile in tiles[1:]:
             row = side_by_side(row, tile, labels=None)
