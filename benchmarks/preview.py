@@ -124,6 +124,40 @@ def resemblance(preview: Path, full: Path, size: int = 128) -> Optional[dict[str
     return out
 
 
+def fit_thresholds(scored: list[tuple[float, bool]]) -> tuple[float, float]:
+    """Verdict thresholds (unlikely, likely) that make no error on ``scored`` ((directional, works) pairs):
+    "likely" from halfway between the highest-scoring prompt that fails and the next one up, "unlikely" below
+    halfway between the lowest-scoring prompt that works and the next one down; where no prompt fails (or none
+    works) above (below) the others, the bound sits just past the extreme score."""
+    scores = sorted(s for s, _ in scored)
+    failing = [s for s, ok in scored if not ok]
+    working = [s for s, ok in scored if ok]
+
+    def between(edge: float, up: bool) -> float:
+        beyond = [s for s in scores if (s > edge if up else s < edge)]
+        return (edge + (min(beyond) if up else max(beyond))) / 2 if beyond else edge + (1e-3 if up else -1e-3)
+
+    likely = between(max(failing), up=True) if failing else min(scores) - 1e-3
+    unlikely = between(min(working), up=False) if working else max(scores) + 1e-3
+    return min(unlikely, likely), likely
+
+
+def leave_one_out(scored: list[tuple[str, float, bool]]) -> dict[str, Any]:
+    """Each prompt's verdict from thresholds fitted on the others (:func:`fit_thresholds`): how the verdict does
+    on a prompt it was not set on. Returns the tally ``{"right", "wrong", "uncertain", "wrong_prompts"}``."""
+    tally: dict[str, Any] = {"right": 0, "wrong": 0, "uncertain": 0, "wrong_prompts": []}
+    for i, (prompt, score, ok) in enumerate(scored):
+        unlikely, likely = fit_thresholds([(s, w) for j, (_, s, w) in enumerate(scored) if j != i])
+        if unlikely <= score < likely:
+            tally["uncertain"] += 1
+        elif (score >= likely) == ok:
+            tally["right"] += 1
+        else:
+            tally["wrong"] += 1
+            tally["wrong_prompts"].append(prompt)
+    return tally
+
+
 def rank_correlation(pairs: list[tuple[float, float]]) -> float:
     from scipy.stats import spearmanr
 
@@ -161,6 +195,8 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     full = {f["prompt"]: f for f in raw["full"]}
     previews = raw["previews"]
     rows, tally = verdicts(previews, full)
+    scored = [(p["prompt"], p["directional"], works(full[p["prompt"]]["top5"])) for p in previews]
+    fitted, loo = fit_thresholds([(sc, ok) for _, sc, ok in scored]), leave_one_out(scored)
     first = previews[0]
     cal = CALIBRATION["imagenet"]
     n_work = sum(works(full[p["prompt"]]["top5"]) for p in previews)
@@ -187,6 +223,14 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
              + (f"; wrong: {', '.join(tally['wrong'])}" if tally["wrong"] else "") + ". The thresholds were read off "
              "these same prompts, so this is the accuracy on the prompts they were set on; for scale, saying "
              f"\"likely\" of every prompt would be right on {n_work} of {len(previews)}.",
+             "", f"**Thresholds fitted to these previews** (no error on them: likely from halfway between the "
+             f"highest-scoring failure and the next score, unlikely below halfway between the lowest-scoring success "
+             f"and the next): unlikely < {fitted[0]:.3f}, likely >= {fitted[1]:.3f}"
+             + (" (this commit's)" if abs(fitted[0] - cal.unlikely) < 5e-4 and abs(fitted[1] - cal.likely) < 5e-4
+                else " (this commit has other thresholds: set these in CALIBRATION to use them)") + ". "
+             f"**Left out** (each prompt judged by thresholds fitted on the other {len(previews) - 1}, the accuracy on a "
+             f"prompt the verdict was not set on): {loo['right']} right, {loo['wrong']} wrong, {loo['uncertain']} "
+             "uncertain" + (f" (wrong: {', '.join(loo['wrong_prompts'])})" if loo["wrong_prompts"] else "") + ".",
              "", f"- the subject kept (silhouette IoU with the source >= 0.9): **{'MET' if min(ious) >= 0.9 else 'NOT MET'}** "
              f"({sum(i >= 0.9 for i in ious)} of {len(ious)}; below: "
              + (", ".join(f"{p['prompt']} {p['silhouette_iou']:.2f}" for p in previews if p["silhouette_iou"] < 0.9)

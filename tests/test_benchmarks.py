@@ -436,6 +436,22 @@ def test_preview_report_tallies_the_verdict_against_the_full_runs():
     assert "16 steps at 256 px" in text and "3 of the 5 prompts work in the full run" in text
 
 
+def test_preview_thresholds_fitted_without_error_and_judged_left_out():
+    """The verdict's thresholds as the benchmark fits them: no error on the prompts they are fitted to, halfway
+    between neighbouring scores; left out, a prompt is judged by thresholds fitted on the others."""
+    bench = _load("preview")
+    scored = [("a", 0.30, True), ("b", 0.25, True), ("c", 0.22, False), ("d", 0.20, True), ("e", 0.15, False),
+              ("f", 0.12, False)]
+    unlikely, likely = bench.fit_thresholds([(sc, ok) for _, sc, ok in scored])
+    assert (unlikely, likely) == pytest.approx((0.175, 0.235))
+    assert all(sc >= likely for _, sc, ok in scored if ok and sc > 0.22) and all(sc < likely for _, sc, ok in scored
+                                                                                   if not ok)
+    loo = bench.leave_one_out(scored)
+    # c alone scores above every other failure (called likely, fails); d alone below every other success
+    assert loo == {"right": 3, "wrong": 2, "uncertain": 1, "wrong_prompts": ["c", "d"]}
+    assert bench.fit_thresholds([(0.3, True), (0.2, True)])[1] < 0.2  # nothing fails: every score is likely
+
+
 def test_preview_retime_replaces_the_times_and_refuses_a_changed_preview(tmp_path: Path, monkeypatch) -> None:
     """``--retime`` runs each preview of the raw file again from an empty folder: new times replace the old, the
     full runs stay, and a preview whose scores came out different stops the run (it would time another preview)."""

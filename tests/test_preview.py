@@ -1,4 +1,5 @@
-"""stage=preview: the full run's first steps, shown through the dial, with a verdict on the prompt."""
+"""stage=preview: a short, small version of the full run (its first steps where the sizes agree), with a verdict
+on the prompt and a picture to check it by."""
 
 from __future__ import annotations
 
@@ -11,13 +12,15 @@ from PIL import Image
 from pipeline_helpers import run_cli, tiny_cfg
 
 from nerfart_plugin.data.datamodule import DEFAULT_SCENE
+from nerfart_plugin.run.stages.preview import PICTURE_LONG_SIDE
 
 TINY_STYLE = ["reconstruct.steps=20", "stylize.lr=0.01", "guidance=toy", "data.resolution=32"]
 
 
 @pytest.mark.slow
-def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, caplog):
+def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, caplog, monkeypatch):
     from nerfart_plugin.run.pipeline import run
+    from nerfart_plugin.run.stages.preview import CALIBRATION, Calibration
 
     cfg = tiny_cfg(shared_runs, DEFAULT_SCENE, *TINY_STYLE, "stage=preview", "prompt=zebra", "preview.steps=3",
                    "preview.resolution=24")
@@ -28,8 +31,9 @@ def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, ca
     assert metrics["steps"] == 3 and metrics["resolution"] == 24
     views = sorted((folder / "heldout").glob("stylized_*.png"))
     assert views and Image.open(views[0]).size == (24, 24)
-    with Image.open(folder / "preview.png") as im:  # one row per held-out view: source | preview
-        assert im.size[0] > 2 * 24 and im.size[1] >= len(views) * 24
+    with Image.open(folder / "preview.png") as im:  # one row per held-out view: source | preview, drawn larger
+        assert 2 * PICTURE_LONG_SIDE <= im.size[0] < 3 * PICTURE_LONG_SIDE
+        assert im.size[1] >= len(views) * PICTURE_LONG_SIDE
     judge = metrics["judge"]
     assert judge["target_class"] == "zebra" and 0 <= judge["stylized"]["mean_target_prob"] <= 1
     assert result["judge"] == judge
@@ -41,6 +45,11 @@ def test_preview_writes_the_picture_and_the_scores_and_is_reused(shared_runs, ca
     assert metrics["verdict"]["verdict"] == "uncalibrated"  # the toy guide has no calibration
     assert "preview of 'zebra': uncalibrated (the verdict is calibrated for guidance=imagenet" in caplog.text
     assert "the judge's P(zebra)" in caplog.text
+    # calibrated again since (here: the toy guide gains thresholds): a reused preview says the new verdict
+    monkeypatch.setitem(CALIBRATION, "toy", Calibration("toy", likely=-1.0, unlikely=-2.0, steps=3, strength=1.0,
+                                                        silhouette=5.0, resolution=24, record="a test's"))
+    assert run(cfg)["preview"]["verdict"] == "likely to work"
+    assert json.loads((folder / "metrics.json").read_text())["verdict"]["verdict"] == "likely to work"
 
 
 def test_preview_needs_a_prompt_and_a_sane_size(tmp_path):

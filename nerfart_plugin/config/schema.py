@@ -352,8 +352,9 @@ MixWeight = Annotated[Float, Field(ge=-1.0, le=2.0)]
 
 
 class PreviewConfig(Section):
-    """``preview``: ``stage=preview``, the first steps of the stylization a full run would make (same settings,
-    same views, same schedule), shown through the strength dial, with a verdict on the prompt in words."""
+    """``preview``: ``stage=preview``, a short, small version of the stylization a full run would make (its
+    losses, learning rates, views and seeds; fewer steps, a smaller size, the subject's outline held), with a
+    verdict on the prompt in words."""
 
     steps: Int = Setting(40, ge=1, le=10_000, description="optimizer steps of the preview (one view each), with "
                          "the full run's losses, learning rates, views and seeds")

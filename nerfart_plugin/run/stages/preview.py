@@ -108,11 +108,11 @@ def verdict(direction: Optional[float], guide: str, steps: Optional[int] = None,
 
 
 class PreviewStage(StylizeStage):
-    """``stage=preview``: the stylization of the same source and style, stopped after ``preview.steps`` steps,
-    into ``previews/<style>-<backbone>-<key>/``: ``preview.png``, ``heldout/`` (at the dialed strength) and
+    """``stage=preview``: the stylization of the same source and style under :func:`preview_scene`'s settings,
+    into ``previews/<style>-<backbone>-<key>/``: ``preview.png``, ``heldout/`` (at ``preview.strength``) and
     ``metrics.json`` (the verdict, the guide's and the judge's scores). A finished preview is reused (its verdict
     logged again, its picture completed with the full run's views once that run exists). Previews of settings
-    that differ only in the full run's length are one preview: the same first steps."""
+    that differ only in the full run's length are one preview."""
 
     reused_message = "this preview is already complete: %s (not recomputed)"
     stage = "preview"
@@ -142,16 +142,21 @@ class PreviewStage(StylizeStage):
             dialed = blended_renderer(system.renderer, system.source, [system.renderer], [self.strength])
         with self.clock.part("evaluation"):
             metrics = self.heldout_metrics(system, renderer=dialed)
-        metrics["verdict"] = verdict(metrics.get("clip_directional_similarity"), self.scene.cfg.guidance.name,
-                                     fit.steps, self.strength, self.silhouette, self.settings.resolution)
         metrics.update({"prompt": self.style.raw_prompt, "prompt_used": self.style.prompt, "style": self.style.name,
                         "steps": fit.steps, "resolution": self.settings.resolution, "strength": self.strength,
                         "lambda_silhouette": self.silhouette,
                         "train_seconds_this_process": fit.seconds, "full_run": str(self.full_run.path),
                         "source_checkpoint": str(Path(self.source).resolve()), "stamp": self.style.stamp or None})
+        metrics["verdict"] = self.verdict_of(metrics)
         metrics["picture_has_full_run"] = draw_preview(self.folder.path, metrics, self.full_run)
         log_preview(self.folder.path, metrics)
         return metrics
+
+    def verdict_of(self, metrics: dict[str, Any]) -> dict[str, Any]:
+        """The verdict on a preview's scores and settings (``metrics.json``), at this version's thresholds."""
+        return verdict(metrics.get("clip_directional_similarity"), self.scene.cfg.guidance.name,
+                       metrics.get("steps"), metrics.get("strength"), metrics.get("lambda_silhouette"),
+                       metrics.get("resolution"))
 
     def auto_choices(self, system: Any, fit: FitResult) -> dict[str, Any]:
         return {**super().auto_choices(system, fit), "preview.resolution": self.settings.resolution}
@@ -160,9 +165,10 @@ class PreviewStage(StylizeStage):
         result = super().reuse()
         metrics = _read_json(self.folder.path / "metrics.json")
         shown = metrics.get("picture_has_full_run") and metrics.get("full_run") == str(self.full_run.path)
-        if metrics and self.full_run.finished and not shown:  # previews of one start serve several full runs
-            metrics.update(full_run=str(self.full_run.path),
-                           picture_has_full_run=draw_preview(self.folder.path, metrics, self.full_run))
+        fresh = self.verdict_of(metrics)  # the thresholds may have been calibrated again since
+        if metrics and (fresh != metrics.get("verdict") or (self.full_run.finished and not shown)):
+            metrics.update(verdict=fresh, full_run=str(self.full_run.path))  # one preview serves several full runs
+            metrics["picture_has_full_run"] = draw_preview(self.folder.path, metrics, self.full_run)
             atomic_write_json(self.folder.path / "metrics.json", metrics)
         log_preview(self.folder.path, metrics)
         return StageResult(result.checkpoint, {**result.summary, **self.summary(metrics)})
