@@ -201,7 +201,8 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str) -> str:
     cal = CALIBRATION["imagenet"]
     n_work = sum(works(full[p["prompt"]]["top5"]) for p in previews)
     body = [f"`stage=preview` ({' '.join(raw.get('override') or []) or 'defaults'}: {first['steps']} steps at "
-            f"{first['resolution']} px, the full run's own start, shown at strength {first['strength']:g}) on the "
+            f"{first['resolution']} px with the full run's losses and views and the outline held, shown at strength "
+            f"{first['strength']:g}) on the "
             "main-job benchmark's reconstruction of the head, `guidance=imagenet`, against the full stylization of "
             f"the same prompt at this commit's defaults. {n_work} of the {len(previews)} prompts work in the full run "
             "(the judge's top 5 on at least 3 of 4 held-out views). Resemblance to the full run's held-out views: "
