@@ -8,7 +8,7 @@ subject's outline (``preview.lambda_silhouette``). Its held-out views can be sho
 | the full run's view where that run has finished (drawn again when the preview is asked for after the full run),
 under the verdict. The recipe is the one measured to resemble the full run most within a minute (BENCHMARKS.md,
 "The preview"): the full run's first steps at its own size, pushed on by the dial, resembled it less and lost the
-outline of half the study's prompts.
+outline on 9 of the study's 15 prompts.
 
 The verdict (:func:`verdict`) reads the guide's directional similarity of the dialed views against thresholds
 calibrated on the study's prompts with the guide they were measured with (:data:`CALIBRATION`); for another
