@@ -129,3 +129,22 @@ def test_the_compile_cache_lives_where_the_docs_say(monkeypatch, tmp_path) -> No
     monkeypatch.delenv(compiled_mod.CACHE_ENV)
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR")
     assert compiled_mod.cache_dir() == compiled_mod.Path.home() / ".cache" / "nerfart_plugin" / "inductor"
+
+
+@needs_compiler
+def test_short_work_stays_uncompiled_but_takes_the_fused_lookups() -> None:
+    """Below the compile's threshold the grid's lookups still take the fused kernel (no per-run cost), and the
+    choice says so; compile=off leaves ATen's lookups; a field without a grid has nothing to fuse."""
+    cpu = torch.device("cpu")
+    least = MIN_COMPILED_STEPS["stylization"]
+    eager, r = _pair("volsdf")
+    set_compiled(r, False)
+    choice = compiled_mod.apply_compile(r, "auto", cpu, 10, least)
+    assert choice == f"off (10 steps < {least}: the compile would not pay); grid lookups fused"
+    assert not r.field.compiled and r.field.encoding.fused
+    with torch.no_grad():
+        torch.testing.assert_close(r.march(_batch(30))["rgb"], eager.march(_batch(30))["rgb"], rtol=1e-5, atol=1e-6)
+    assert compiled_mod.apply_compile(r, "off", cpu, 10**6, least) == "off" and not r.field.encoding.fused
+    assert compiled_mod.apply_compile(r, "auto", cpu, least, least) == "on" and r.field.encoding.fused
+    freq = VolumeRenderer(build_field({"name": "nerf", **SMALL}, FREQUENCY, bound=1.0), num_samples=8)
+    assert compiled_mod.apply_compile(freq, "auto", cpu, 10, least) == f"off (10 steps < {least}: the compile would not pay)"

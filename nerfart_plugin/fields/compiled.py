@@ -1,19 +1,21 @@
 """Compiled field evaluation (the ``compile`` setting): a field's ``query`` through ``torch.compile``.
 
 What is compiled is each leaf field's ``query`` (encoding, MLPs, the SDF-to-colour step), once per field class,
-with dynamic shapes (the renderer's sample counts vary per block and batch). The grid encodings' bilinear lookups
-stay ATen's own kernels (``encodings._grid_lookup``): the compiler's decomposition of ``grid_sample`` is slower on
-a CPU. Everything else the compiler fuses (the softplus, the concatenations, the sigmoid, the finite-difference
-taps), which is where an eager field spends the time that the matrix products and lookups leave.
+with dynamic shapes (the renderer's sample counts vary per block and batch). The compiler fuses the elementwise
+work (the softplus, the concatenations, the sigmoid, the finite-difference taps); the matrix products stay the
+BLAS's. The TensorVM grid's lookups, which the compiler would decompose into slower gathers, run on a CPU as a
+fused kernel of this package (:mod:`nerfart_plugin.fields.fused_grid`, one pass per point forward, a
+plane-by-plane scatter backward, called from inside the compiled graph) and elsewhere (CUDA) as ATen's
+``grid_sample`` (``encodings._grid_lookup``).
 
 Callers evaluate a field through :func:`evaluate` (the renderer and the composite field do): a field whose
 ``compiled`` flag is set runs the compiled query, others their own. A compile that fails (a custom field the
 compiler cannot trace, a platform without a working compiler) logs why once and leaves that field eager; the
 results are the eager ones up to float rounding (tests/test_compiled.py).
 
-The compiled kernels are cached on disk by inductor (:func:`use_cache_dir`: ``$NERFART_COMPILE_CACHE``, else
-``~/.cache/nerfart_plugin/inductor``), so a second process pays a fraction of the first one's compile time.
-Delete that folder to clear it.
+The compiled kernels are cached on disk (:func:`use_cache_dir`: ``$NERFART_COMPILE_CACHE``, else
+``~/.cache/nerfart_plugin/inductor``; inductor's kernels and, in ``nerfart_kernels/``, the fused grid kernel), so
+a second process pays a fraction of the first one's compile time. Delete that folder to clear it.
 """
 
 from __future__ import annotations
@@ -113,7 +115,36 @@ def set_compiled(module: nn.Module, on: bool = True) -> int:
     fields = compilable_fields(module)
     for f in fields:
         f.compiled = on
+        use_fused_kernels(f, on)
     return len(fields)
+
+
+def use_fused_kernels(module: nn.Module, on: bool = True) -> int:
+    """Switch the encodings inside ``module`` that have a fused kernel of their own (the TensorVM grid's
+    lookups, :mod:`nerfart_plugin.fields.fused_grid`) to it or back to ATen's; returns how many use it now."""
+    count = 0
+    for m in module.modules():
+        if hasattr(m, "set_fused"):
+            m.set_fused(on)
+            count += int(bool(getattr(m, "fused", False)) and on)
+    return count
+
+
+def apply_compile(module: nn.Module, setting: str, device: torch.device, work: Optional[int] = None,
+                  minimum: int = 0, unit: str = "steps") -> str:
+    """Compile the fields inside ``module`` as :func:`decide_compile` says and return what was chosen, as
+    ``metrics.json["auto"]["compile"]`` records it. Where the compile would not pay (short work) the grid's
+    lookups still take the fused kernel (built once per machine, no per-run cost): the choice then ends in
+    "; grid lookups fused". ``compile=off`` leaves everything to PyTorch's own kernels."""
+    on, choice = decide_compile(setting, device, work, minimum, unit)
+    if on and set_compiled(module, True) == 0:
+        choice = "off (no field here can be compiled: an analytic SDF gradient stays eager)"
+    if not on:
+        set_compiled(module, False)
+        if setting != "off" and device.type == "cpu" and compiler_missing(device) is None and \
+                use_fused_kernels(module, True):
+            choice += "; grid lookups fused"
+    return choice
 
 
 def compiled_query(cls: type) -> Callable[..., dict[str, Tensor]]:
@@ -145,11 +176,13 @@ def _compiled_or_eager(field: nn.Module, x: Tensor, d: Tensor, with_normal: bool
 
 def warm_up(field: nn.Module, device: Any, with_normal: bool = False) -> float:
     """Compile the no-grad query of the compilable fields in ``field`` now (a few points), whatever their
-    ``compiled`` flag, e.g. in a viewer's background thread while it serves eager frames; returns the seconds."""
+    ``compiled`` flag, e.g. in a viewer's background thread while it serves eager frames (which use the fused
+    kernels from then on); returns the seconds."""
     t0 = time.perf_counter()
     x = torch.zeros(64, 3, device=device)
     d = torch.nn.functional.normalize(torch.ones(64, 3, device=device), dim=-1)
     with torch.no_grad():
         for f in compilable_fields(field):
+            use_fused_kernels(f, True)  # built here, off the caller's thread, and traced into the graph
             _compiled_or_eager(f, x, d, with_normal)
     return time.perf_counter() - t0

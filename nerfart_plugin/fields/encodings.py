@@ -21,6 +21,7 @@ from nerfart_plugin.config.sections import typed_section
 from nerfart_plugin.config.types import Float, Int, Limits, Setting
 from nerfart_plugin.data.setup import AUTO_CELL_PIXELS, AUTO_GRID_MIN
 from nerfart_plugin.errors import ConfigError
+from nerfart_plugin.fields import fused_grid
 
 __all__ = ["Encoding", "FrequencyEncoding", "TensorVMGridEncoding", "SHEncoding", "build_encoding",
            "level_sides"]
@@ -190,11 +191,29 @@ class TensorVMGridEncoding(Encoding):
     _PLANE_AXES = ((0, 1), (0, 2), (1, 2))
     _LINE_AXES = (2, 1, 0)
 
+    #: look up through the fused CPU kernel where it serves (:mod:`nerfart_plugin.fields.fused_grid`); set with
+    #: :meth:`set_fused` (the ``compile`` setting does)
+    fused: bool = False
+
+    def set_fused(self, on: bool) -> None:
+        """Use the fused lookup kernel (where it serves the points) or ATen's ``grid_sample``. On a CPU with the
+        kernel built, the planes and lines are then stored channels-last, the kernel's layout (same shapes and
+        values; checkpoints unchanged)."""
+        self.fused = bool(on)
+        if on and self.planes[0].device.type == "cpu" and fused_grid.load() is not None:  # built once per machine
+            for p in (*self.planes, *self.lines):
+                if not p.is_contiguous(memory_format=torch.channels_last):
+                    p.data = p.data.contiguous(memory_format=torch.channels_last)
+
     def forward(self, x: Tensor) -> Tensor:
         N = x.shape[0]
         xn = (x / self.bound).clamp(-1.0, 1.0)
         dtype = self.planes[0].dtype
         xn = xn.to(dtype)
+        if self.fused and fused_grid.serves(xn):
+            views = [fused_grid.channel_last(p.to(dtype), ln.to(dtype)) for p, ln in zip(self.planes, self.lines)]
+            out = fused_grid.tensorvm_features(xn, [v[0] for v in views], [v[1] for v in views])
+            return self.basis(out) if self.basis is not None else out
         # grid_sample coords: last dim (u,v) = (W index, H index).
         plane_coords = torch.stack([xn[:, list(ax)] for ax in self._PLANE_AXES], 0)  # [3,N,2]
         line_c = torch.stack([xn[:, a] for a in self._LINE_AXES], 0)  # [3,N]

@@ -27,7 +27,7 @@ from nerfart_plugin.data.rays import views_at_resolution
 from nerfart_plugin.data.scene import Scene
 from nerfart_plugin.data.setup import SceneSetup, decide_setup
 from nerfart_plugin.fields import occupancy_scores_opacity
-from nerfart_plugin.fields.compiled import MIN_COMPILED_STEPS, decide_compile, set_compiled
+from nerfart_plugin.fields.compiled import MIN_COMPILED_STEPS, apply_compile
 from nerfart_plugin.guidance import default_negative_threshold
 from nerfart_plugin.guidance.style import Style, build_style
 from nerfart_plugin.fields.composite import RegionMask
@@ -175,12 +175,10 @@ def build_stylization_system(scene: SceneContext, source_state: dict, style: Opt
 
 def compile_system(system: Any, scene: SceneContext, steps: int, stage: str) -> Any:
     """``system`` with its fields compiled where the ``compile`` setting says so for a ``stage`` (reconstruction |
-    stylization) of ``steps`` steps (:func:`~nerfart_plugin.fields.compiled.decide_compile`); what was decided is
+    stylization) of ``steps`` steps (:func:`~nerfart_plugin.fields.compiled.apply_compile`); what was decided is
     ``system.compile_choice``, recorded in the run's ``metrics.json``."""
-    on, system.compile_choice = decide_compile(scene.cfg.compile, torch.device(scene.device), steps,
-                                               MIN_COMPILED_STEPS[stage])
-    if on and set_compiled(system, on) == 0:
-        system.compile_choice = "off (no field here can be compiled: an analytic SDF gradient stays eager)"
+    system.compile_choice = apply_compile(system, scene.cfg.compile, torch.device(scene.device), steps,
+                                          MIN_COMPILED_STEPS[stage])
     log.info("compile: %s", system.compile_choice)
     return system
 

@@ -8,7 +8,7 @@ from typing import Any, Optional
 import torch
 
 from nerfart_plugin.config.auto import recorded
-from nerfart_plugin.fields.compiled import MIN_COMPILED_FRAMES, decide_compile, set_compiled
+from nerfart_plugin.fields.compiled import MIN_COMPILED_FRAMES, apply_compile
 from nerfart_plugin.run.stages.base import StageResult, blended_run
 
 
@@ -24,9 +24,8 @@ class RenderStage:
         run = blended_run(self.cfg, self.run_dir)
         resolution = None if rc.resolution == "auto" else int(rc.resolution)
         path = run.camera_path(rc.path, rc.frames, resolution, rc.path_frame)
-        on, compiled = decide_compile(self.cfg.compile, torch.device(run.device), len(path), MIN_COMPILED_FRAMES,
-                                      "frames")
-        set_compiled(run.renderer, on)
+        compiled = apply_compile(run.renderer, self.cfg.compile, torch.device(run.device), len(path),
+                                 MIN_COMPILED_FRAMES, "frames")
         summary = run.write_render(run.render_folder(path), path, channels=rc.channels, fps=rc.fps, png=rc.png)
         summary["auto"] = recorded(self.cfg, {"render.resolution": max(path.width, path.height),
                                               "compile": compiled})
