@@ -61,17 +61,19 @@ def interleaved(fns: dict[str, Callable[[], Any]], reps: int) -> dict[str, float
 
 # --------------------------------------------------------------------------- 1. the field
 def field_parts(folder: Path, reps: int, n: int, device: str = "cpu") -> list[dict[str, Any]]:
-    """Eager vs compiled ``query`` of the run's field on ``n`` points: three uses (see the module docstring)."""
+    """Eager, fused lookups and compiled ``query`` of the run's field on ``n`` points: three uses (see the module
+    docstring)."""
     import copy
 
     import torch
 
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.fields.compiled import evaluate, set_compiled
+    from nerfart_plugin.fields.compiled import evaluate, set_compiled, use_fused_kernels
 
     eager = open_run(folder, device=device).renderer.field
-    comp = copy.deepcopy(eager)
+    comp, fused = copy.deepcopy(eager), copy.deepcopy(eager)
     set_compiled(comp)
+    use_fused_kernels(fused)
     g = torch.Generator().manual_seed(0)
     x = ((torch.rand(n, 3, generator=g) * 2 - 1) * 0.8 * float(eager.bound)).to(device)
     d = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1).to(device)
@@ -101,9 +103,10 @@ def field_parts(folder: Path, reps: int, n: int, device: str = "cpu") -> list[di
     for label, make in ((f"no grad, colour only ({n} points)", lambda f: nograd(f, False)),
                         (f"no grad, with normals ({n} points)", lambda f: nograd(f, True)),
                         (f"training forward + backward ({n // 4} points)", train)):
-        s = interleaved({"eager": make(eager), "compiled": make(comp)}, reps)
+        s = interleaved({"eager": make(eager), "fused": make(fused), "compiled": make(comp)}, reps)
         rows.append({"part": label, **s})
-        log.info("field, %s: eager %.1f ms, compiled %.1f ms", label, 1e3 * s["eager"], 1e3 * s["compiled"])
+        log.info("field, %s: eager %.1f ms, fused lookups %.1f ms, compiled %.1f ms", label, 1e3 * s["eager"],
+                 1e3 * s["fused"], 1e3 * s["compiled"])
     return rows
 
 
@@ -114,17 +117,20 @@ def frame(folder: Path, reps: int, side: int, device: str = "cpu") -> dict[str, 
     from torch.profiler import profile
 
     from nerfart_plugin.api import open_run
-    from nerfart_plugin.fields.compiled import set_compiled
+    from nerfart_plugin.fields.compiled import set_compiled, use_fused_kernels
     from nerfart_plugin.viewer.cameras import capture_camera
     from nerfart_plugin.viewer.sources import RunField, ViewSettings
 
     eager, comp = RunField(open_run(folder, device=device)), RunField(open_run(folder, device=device))
+    fused = RunField(open_run(folder, device=device))
     set_compiled(comp.run.renderer)
+    use_fused_kernels(fused.run.renderer)
     cam = capture_camera(eager.cameras, 0)
     t0 = time.perf_counter()
     comp.render(cam, side, ViewSettings())
     first = time.perf_counter() - t0
     s = interleaved({"eager": lambda: eager.render(cam, side, ViewSettings()),
+                     "fused": lambda: fused.render(cam, side, ViewSettings()),
                      "compiled": lambda: comp.render(cam, side, ViewSettings())}, reps)
     diff = int(abs(eager.render(cam, side, ViewSettings()).astype(int)
                    - comp.render(cam, side, ViewSettings()).astype(int)).max())
@@ -133,27 +139,28 @@ def frame(folder: Path, reps: int, side: int, device: str = "cpu") -> dict[str, 
     events = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)
     total = sum(e.self_cpu_time_total for e in events) or 1.0
     top = [{"op": e.key, "share": e.self_cpu_time_total / total} for e in events[:8]]
-    log.info("frame %d px: eager %.3f s, compiled %.3f s (first compiled frame %.1f s)", side, s["eager"],
-             s["compiled"], first)
+    log.info("frame %d px: eager %.3f s, fused lookups %.3f s, compiled %.3f s (first compiled frame %.1f s)", side,
+             s["eager"], s["fused"], s["compiled"], first)
     return {"side": side, **s, "first_compiled_s": first, "max_pixel_diff": diff, "top_ops": top}
 
 
 # --------------------------------------------------------------------------- 3. training steps
 def reconstruction_steps(overrides: list[str], steps: int) -> dict[str, Any]:  # on the overrides' device
-    """A reconstruction step's parts (ms), eager and compiled systems alternating step by step."""
+    """A reconstruction step's parts (ms), eager, fused-lookup and compiled systems alternating step by step."""
     import lightning as L
 
     from benchmarks.step_split import timed_step
-    from nerfart_plugin.fields.compiled import set_compiled
+    from nerfart_plugin.fields.compiled import set_compiled, use_fused_kernels
     from nerfart_plugin.run.factories import build_reconstruction_system, build_scene
     from nerfart_plugin.systems.base import adam, param_groups
 
     scene = build_scene(common.compose(overrides))
     systems = {}
-    for name in ("eager", "compiled"):
+    for name in ("eager", "fused", "compiled"):
         L.seed_everything(0, verbose=False)
         system = build_reconstruction_system(scene)
         set_compiled(system, name == "compiled")
+        use_fused_kernels(system, name != "eager")
         rc = scene.cfg.reconstruct
         systems[name] = (system, adam(param_groups(system.renderer, rc.lr, rc.lr_mlp)))
     parts: dict[str, dict[str, list[float]]] = {k: {"forward": [], "backward": [], "optimizer": []} for k in systems}
@@ -172,14 +179,15 @@ def reconstruction_steps(overrides: list[str], steps: int) -> dict[str, Any]:  #
 
 def stylization_steps(checkpoint: Path, overrides: list[str], steps: int, blocks: int) -> dict[str, Any]:
     """A stylization step's parts (ms; :class:`~nerfart_plugin.systems.stylization.StylizationSystem`'s own
-    timings), ``blocks`` blocks of ``steps`` steps each way, alternating eager and compiled."""
+    timings), ``blocks`` blocks of ``steps`` steps each way, alternating eager, fused lookups and compiled."""
     from benchmarks.stylization import Context, run_steps
 
     ctx = Context(overrides, checkpoint)
-    timings: dict[str, list[dict[str, float]]] = {"eager": [], "compiled": []}
-    for _ in range(blocks):
-        for name, setting in (("eager", "compile=off"), ("compiled", "compile=on")):
-            r = run_steps(ctx, [setting], steps + 1, prompt=PROMPT)
+    timings: dict[str, list[dict[str, float]]] = {"eager": [], "fused": [], "compiled": []}
+    for _ in range(blocks):  # compile=auto on a few steps: uncompiled with the fused lookups
+        for name, setting in (("eager", "compile=off"), ("fused", "compile=auto"), ("compiled", "compile=on")):
+            # the block's length as the run's (all three alike), so that compile=auto decides as on a short run
+            r = run_steps(ctx, [setting, f"stylize.steps={steps + 1}"], steps + 1, prompt=PROMPT)
             timings[name] += r["timings"][1:]  # the block's first step (the source cache, the compile) dropped
     out = {name: {k: 1e3 * statistics.median(t[k] for t in ts) for k in ts[0]} for name, ts in timings.items()}
     log.info("stylization step: %s", out)
@@ -253,19 +261,27 @@ def main_job_lines(rows: list[dict[str, Any]]) -> list[str]:
 
 
 def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> str:
-    def ratio(e: float, c: float) -> str:
+    def ratio(e: float, c: Any) -> str:
         return f"{e / c:.2f}x" if c else "–"
 
+    def ms(v: Any, digits: int = 1) -> str:
+        return f"{v:.{digits}f}" if v is not None else "–"
+
     fr = raw["frame"]
-    body = [f"Device: {raw.get('device', 'cpu')}. Eager against compiled (`compile=on`: each field's `query` through `torch.compile`, inductor, dynamic "
-            "shapes; the grid lookups left to ATen), measured in one process, interleaved; ratio = eager / "
-            "compiled (above 1: the compiled is faster).", "",
+    body = [f"Device: {raw.get('device', 'cpu')}. Three ways in one process, interleaved: **eager** (`compile=off`: "
+            "PyTorch's kernels, the grid's lookups by `grid_sample`), **fused lookups** (the TensorVM grid's lookups "
+            "in the package's fused CPU kernel, the rest eager: what `compile=auto` runs where the compile would not "
+            "pay) and **compiled** (`compile=on`: each field's `query` through `torch.compile`, inductor, dynamic "
+            "shapes, with the fused lookups inside the graph on a CPU, ATen's `grid_sample` on CUDA). Ratios are "
+            "eager / the other (above 1: faster than eager).", "",
             "**The field** (the head's VolSDF on the TensorVM grid, random points in the box):", ""]
-    body += common.md_table(["use", "eager (ms)", "compiled (ms)", "ratio"],
-                            [[r["part"], f"{1e3 * r['eager']:.1f}", f"{1e3 * r['compiled']:.1f}",
-                              ratio(r["eager"], r["compiled"])] for r in raw["field"]])
+    body += common.md_table(
+        ["use", "eager (ms)", "fused lookups (ms)", "compiled (ms)", "ratio fused", "ratio compiled"],
+        [[r["part"], ms(1e3 * r["eager"]), ms(1e3 * r["fused"]) if "fused" in r else "–", ms(1e3 * r["compiled"]),
+          ratio(r["eager"], r.get("fused")), ratio(r["eager"], r["compiled"])] for r in raw["field"]])
     met = "met" if fr["compiled"] <= FRAME_GOAL_S else "NOT met"
-    body += ["", f"**The viewer's {fr['side']} px frame** of the head: eager {fr['eager']:.3f} s, compiled "
+    fused_frame = f"fused lookups {fr['fused']:.3f} s ({ratio(fr['eager'], fr['fused'])}), " if "fused" in fr else ""
+    body += ["", f"**The viewer's {fr['side']} px frame** of the head: eager {fr['eager']:.3f} s, {fused_frame}compiled "
              f"{fr['compiled']:.3f} s ({ratio(fr['eager'], fr['compiled'])}; goal <= {FRAME_GOAL_S} s: {met}); the "
              f"first compiled frame {fr['first_compiled_s']:.1f} s (the compile); largest pixel difference "
              f"{fr['max_pixel_diff']} of 255. Where the compiled frame's time goes (the profiler's self time):", ""]
@@ -273,13 +289,18 @@ def report(raw: dict[str, Any], info: dict[str, Any], cmd: str, quick: bool) -> 
                                                    for t in fr["top_ops"]])
     rs, ss = raw["reconstruction"], raw["stylization"]
     body += ["", "**Training steps** (median ms; the stylization step's parts are the system's own timings):", ""]
-    rows = [[f"reconstruction: {k}", f"{rs['eager'][k]:.1f}", f"{rs['compiled'][k]:.1f}",
-             ratio(rs["eager"][k], rs["compiled"][k])] for k in ("forward", "backward", "optimizer", "step")]
-    rows += [[f"stylization: {k}", f"{ss['eager'][k]:.0f}", f"{ss['compiled'][k]:.0f}",
-              ratio(ss["eager"][k], ss["compiled"][k])] for k in ss.get("eager", {})]
+
+    def step_row(stage: str, part: str, t: dict[str, Any], digits: int) -> list[str]:
+        f = t.get("fused", {}).get(part)
+        return [f"{stage}: {part}", ms(t["eager"][part], digits), ms(f, digits), ms(t["compiled"][part], digits),
+                ratio(t["eager"][part], f), ratio(t["eager"][part], t["compiled"][part])]
+
+    rows = [step_row("reconstruction", k, rs, 1) for k in ("forward", "backward", "optimizer", "step")]
+    rows += [step_row("stylization", k, ss, 0) for k in ss.get("eager", {})]
     if "error" in ss:
-        rows.append(["stylization: not measured", ss["error"][:120], "", ""])
-    body += common.md_table(["step part", "eager", "compiled", "ratio"], rows)
+        rows.append(["stylization: not measured", ss["error"][:120], "", "", "", ""])
+    body += common.md_table(["step part", "eager", "fused lookups", "compiled", "ratio fused", "ratio compiled"],
+                            rows)
     ct = raw["compile"]
     body += ["", f"**Compile time** of the field (a fresh process; no-grad graph + training graph): empty kernel "
              f"cache {ct['cold']['no_grad_s']:.1f} + {ct['cold']['training_s']:.1f} s, warm cache "

@@ -11,10 +11,10 @@ import logging
 import pytest
 import torch
 
-from nerfart_plugin.fields import fused_grid
+from nerfart_plugin.fields import compiled, fused_grid
 from nerfart_plugin.fields.encodings import TensorVMGridEncoding
 
-needs_compiler = pytest.mark.skipif(fused_grid.compiler() is None, reason="no C++ compiler on this machine")
+needs_compiler = pytest.mark.skipif(compiled.cxx_compiler() is None, reason="no C++ compiler on this machine")
 
 
 def _pair(resolution, components: int, out_features=None, dtype=torch.float32, seed: int = 0):
@@ -93,7 +93,7 @@ def test_the_layout_changes_neither_shapes_nor_checkpoints() -> None:
 @needs_compiler
 def test_the_build_is_cached_by_content(tmp_path, monkeypatch) -> None:
     monkeypatch.setenv("NERFART_COMPILE_CACHE", str(tmp_path))
-    cxx = fused_grid.compiler()
+    cxx = compiled.cxx_compiler()
     path = fused_grid.library_path(cxx)
     assert path.parent == tmp_path / "nerfart_kernels" and path.name.startswith("tensorvm-")
     fused_grid._build(cxx, path)
@@ -105,7 +105,7 @@ def test_the_build_is_cached_by_content(tmp_path, monkeypatch) -> None:
 def test_without_a_compiler_the_aten_path_answers_and_says_why(monkeypatch, caplog) -> None:
     monkeypatch.setattr(fused_grid, "_library", None)
     monkeypatch.setattr(fused_grid, "_unavailable", None)
-    monkeypatch.setattr(fused_grid, "compiler", lambda: None)
+    monkeypatch.setattr(compiled, "cxx_compiler", lambda: None)
     torch.manual_seed(0)
     enc = TensorVMGridEncoding({"resolution": 8, "levels": 2, "n_components": 4, "out_features": 6})
     ref = copy.deepcopy(enc)
@@ -122,9 +122,59 @@ def test_without_a_compiler_the_aten_path_answers_and_says_why(monkeypatch, capl
 def test_a_failed_build_names_the_compiler_and_the_source(tmp_path, monkeypatch) -> None:
     monkeypatch.setattr(fused_grid, "SOURCE", tmp_path / "broken.cpp")
     (tmp_path / "broken.cpp").write_text("this is not C++\n")
-    cxx = fused_grid.compiler()
+    cxx = compiled.cxx_compiler()
     if cxx is None:
         pytest.skip("no C++ compiler on this machine")
     with pytest.raises(RuntimeError, match=r"failed on .*broken\.cpp"):
         fused_grid._build(cxx, tmp_path / "out" / "k.so")
     assert not any((tmp_path / "out").iterdir())  # nothing half-written left
+
+
+@needs_compiler
+def test_a_nan_point_is_nan_and_scatters_nothing() -> None:
+    """A NaN coordinate (the clamp lets it through) reads no memory outside the planes: its features are NaN,
+    as ATen's. Its backward adds nothing to the planes' gradients, even with a zero gradient (ATen's writes NaN
+    into some cells then): every finite entry equals ATen's."""
+    aten, fused = _pair(8, 4)
+    x = _points(20)
+    x[3, 1] = float("nan")
+    with torch.no_grad():
+        a, b = aten(x), fused(x)
+    assert torch.isnan(b[3]).all() and torch.isnan(a[3]).all()
+    torch.testing.assert_close(b[~torch.isnan(a).any(1)], a[~torch.isnan(a).any(1)])
+    grad = torch.ones_like(a)
+    grad[3] = 0.0
+    for enc in (aten, fused):
+        enc.zero_grad()
+        out = enc(x)
+        (torch.nan_to_num(out) * grad).sum().backward()
+    for (name, pa), (_, pb) in zip(aten.named_parameters(), fused.named_parameters()):
+        assert torch.isfinite(pb.grad).all(), name
+        finite = torch.isfinite(pa.grad)
+        torch.testing.assert_close(pb.grad[finite], pa.grad[finite], rtol=1e-4, atol=1e-5, msg=name)
+
+
+@needs_compiler
+def test_the_threads_split_the_points_and_sum_their_gradients() -> None:
+    """Several threads (each with its own gradient buffer, summed at the end) give one thread's result."""
+    aten, fused = _pair([6, 11, 23], 8)
+    x = _points(30000)
+    grad = torch.randn(x.shape[0], 72, generator=torch.Generator().manual_seed(3))
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 3):
+            torch.set_num_threads(threads)
+            fused.zero_grad()
+            out = fused(x)
+            (out * grad).sum().backward()
+            results.append((out.detach(), [p.grad.clone() for p in fused.parameters()]))
+    finally:
+        torch.set_num_threads(before)
+    torch.testing.assert_close(results[1][0], results[0][0], rtol=0, atol=0)  # forward: the same arithmetic
+    for g3, g1 in zip(results[1][1], results[0][1]):
+        torch.testing.assert_close(g3, g1, rtol=1e-5, atol=1e-5)
+    aten.zero_grad()
+    (aten(x) * grad).sum().backward()
+    for pa, g1 in zip(aten.parameters(), results[0][1]):
+        torch.testing.assert_close(g1, pa.grad, rtol=1e-4, atol=1e-4)

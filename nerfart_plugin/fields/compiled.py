@@ -64,6 +64,11 @@ def use_cache_dir() -> Path:
     return folder
 
 
+def cxx_compiler() -> Optional[str]:
+    """The C++ compiler on the PATH ($CXX first, then c++, g++, clang++), or None."""
+    return next((c for c in (os.environ.get("CXX"), "c++", "g++", "clang++") if c and shutil.which(c)), None)
+
+
 def compiler_missing(device: torch.device) -> Optional[str]:
     """Why ``torch.compile`` cannot run on ``device`` here (None: it can): inductor needs a C++ compiler for CPU
     kernels and Triton for CUDA ones, and does not support Windows."""
@@ -76,8 +81,7 @@ def compiler_missing(device: torch.device) -> Optional[str]:
             return "Triton is not installed (pip install triton)"
         return None
     if device.type == "cpu":
-        found = next((c for c in (os.environ.get("CXX"), "c++", "g++", "clang++") if c and shutil.which(c)), None)
-        return None if found else "no C++ compiler on the PATH (install g++ or clang++, or set CXX)"
+        return None if cxx_compiler() else "no C++ compiler on the PATH (install g++ or clang++, or set CXX)"
     return f"inductor does not compile for {device.type}"
 
 

@@ -1,11 +1,16 @@
-"""The TensorVM grid's lookups as one fused CPU kernel (``csrc/tensorvm.cpp``), used when the field is compiled.
+"""The TensorVM grid's lookups as one fused CPU kernel (``csrc/tensorvm.cpp``), part of ``compile=auto|on``.
 
 ATen's ``grid_sample`` reads a corner's components from C separate planes (channel-first) and the encoding then
 multiplies, permutes and concatenates the looked-up planes and lines into [N, 3LC] features in further passes;
 its backward parallelizes over the three planes only. The fused kernel reads channel-last planes (a corner's C
-components contiguous), writes each point's features in place, and scatters the backward into per-thread
-buffers, so one pass over the points does what took several. Its arithmetic is ``grid_sample``'s (bilinear,
-aligned corners, zero padding): the features equal the ATen path's up to float rounding (tests/test_compiled.py).
+components contiguous) and writes each point's features in place, one pass over the points for what took
+several; its backward goes plane by plane (a plane and its gradient are the working set) with a gradient
+buffer per thread. Its arithmetic is ``grid_sample``'s (bilinear, aligned corners, zero padding): the features
+equal the ATen path's up to float rounding, the gradients up to the order of their sums (tests/test_fused_grid.py);
+a NaN point's features are NaN, as ATen's, and it adds nothing to the gradients (ATen's would write NaN).
+
+:func:`nerfart_plugin.fields.compiled.apply_compile` switches it on with the compile, and on its own where the
+compile would not pay (a short run: the kernel is built once per machine, so it costs nothing per run).
 
 The kernel is plain C++ (no PyTorch headers) built once per machine with the system's C++ compiler into the
 compile cache (``<compile cache>/nerfart_kernels``, see :func:`nerfart_plugin.fields.compiled.cache_dir`) and called
@@ -22,7 +27,6 @@ import hashlib
 import logging
 import os
 import platform
-import shutil
 import subprocess
 import tempfile
 import threading
@@ -42,11 +46,6 @@ ABI_VERSION = 1
 _lock = threading.Lock()
 _library: Optional[ctypes.CDLL] = None
 _unavailable: Optional[str] = None  # why the kernel cannot be used here (set once, logged once)
-
-
-def compiler() -> Optional[str]:
-    """The C++ compiler on the PATH ($CXX first), or None."""
-    return next((c for c in (os.environ.get("CXX"), "c++", "g++", "clang++") if c and shutil.which(c)), None)
 
 
 def _cpu_signature() -> str:
@@ -94,7 +93,9 @@ def load() -> Optional[ctypes.CDLL]:
     with _lock:
         if _library is not None or _unavailable is not None:
             return _library
-        cxx = compiler()
+        from nerfart_plugin.fields import compiled  # (imports this module's package)
+
+        cxx = compiled.cxx_compiler()
         if cxx is None:
             _unavailable = "no C++ compiler on the PATH (install g++ or clang++, or set CXX)"
         else:

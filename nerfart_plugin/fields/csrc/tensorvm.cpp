@@ -13,6 +13,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <thread>
 #include <vector>
 
@@ -31,6 +32,13 @@ struct Lookup {  // one plane's bilinear corners and its line's linear pair: off
 
 // The corners of plane axis a at point p [3] on a level of side r, components C. A corner past the last cell
 // (a coordinate of exactly 1) has weight 0; its offset is clamped to the last cell, which adds 0 x a finite value.
+// Points are clamped to [-1, 1] by the caller; a NaN coordinate is the only thing left that would index
+// outside the planes.
+template <typename T>
+inline bool finite_point(const T* p) {
+  return !(std::isnan(p[0]) || std::isnan(p[1]) || std::isnan(p[2]));
+}
+
 template <typename T>
 inline Lookup<T> lookup(const T* p, int a, int64_t r, int C) {
   const T scale = T(r - 1) / T(2);
@@ -58,6 +66,10 @@ void forward_range(const T* __restrict xn, int64_t begin, int64_t end, int L, co
   for (int64_t n = begin; n < end; ++n) {
     const T* p = xn + 3 * n;
     T* __restrict o = out + F * n;
+    if (!finite_point(p)) {  // as grid_sample: every feature of a NaN point is NaN (no memory is read)
+      for (int64_t f = 0; f < F; ++f) o[f] = std::numeric_limits<T>::quiet_NaN();
+      continue;
+    }
     for (int l = 0; l < L; ++l) {
       const int64_t r = sides[l];
       for (int a = 0; a < 3; ++a) {
@@ -92,6 +104,7 @@ void backward_range(const T* __restrict xn, int64_t begin, int64_t end, int L, c
       T* GP = gplanes[l] + poff;
       T* GL = glines[l] + loff;
       for (int64_t n = begin; n < end; ++n) {
+        if (!finite_point(xn + 3 * n)) continue;  // as grid_sample: a NaN point scatters nothing
         const Lookup<T> k = lookup(xn + 3 * n, a, r, C);
         const T* __restrict gc = grad_out + F * n + (l * 3 + a) * C;
         T gp[kMaxC], gl[kMaxC];  // d loss / d (plane value), d loss / d (line value), per component
@@ -158,15 +171,19 @@ void backward(const T* xn, int64_t N, int L, const int64_t* sides, const T* cons
     for (int l = 0; l < L; ++l) { gp[l] = buf.data() + poff[l]; gl[l] = buf.data() + loff[l]; }
     backward_range<T, CC>(xn, b, e, L, sides, planes, lines, C, grad_out, gp.data(), gl.data());
   });
-  for (auto& buf : priv) {
-    if (buf.empty()) continue;
+  // sum the private buffers into the outputs, each thread a slice of every level's planes and lines
+  if (priv.empty()) return;
+  parallel(total, int(t), 65536, [&](int, int64_t b, int64_t e) {
     for (int l = 0; l < L; ++l) {
-      const T* sp = buf.data() + poff[l];
-      const T* sl = buf.data() + loff[l];
-      for (int64_t j = 0; j < psz[l]; ++j) gplanes[l][j] += sp[j];
-      for (int64_t j = 0; j < lsz[l]; ++j) glines[l][j] += sl[j];
+      const int64_t pb = std::max(b, poff[l]) - poff[l], pe = std::min(e, poff[l] + psz[l]) - poff[l];
+      const int64_t lb = std::max(b, loff[l]) - loff[l], le = std::min(e, loff[l] + lsz[l]) - loff[l];
+      for (const auto& buf : priv) {
+        if (buf.empty()) continue;  // a thread without points
+        for (int64_t j = pb; j < pe; ++j) gplanes[l][j] += buf[poff[l] + j];
+        for (int64_t j = lb; j < le; ++j) glines[l][j] += buf[loff[l] + j];
+      }
     }
-  }
+  });
 }
 
 template <typename T>
