@@ -345,15 +345,20 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--main-jobs", nargs="*", default=[], metavar="LABEL=FILE",
                    help="raw files of `python -m benchmarks main_job` runs to tabulate (e.g. cold=a.json)")
     p.add_argument("--note", nargs="*", default=[], help="lines added to the report")
+    p.add_argument("--notes-file", type=Path, help="a Markdown file whose paragraphs are added to the report "
+                   "(after --note's lines)")
     common.add_raw_args(p)
     args = p.parse_args(argv)
     info = common.start_logging(log)
     raw = common.raw_results(args, NAME, lambda: measure(args))
     if args.main_jobs:
         raw["main_job"] = main_job_rows(dict(a.split("=", 1) for a in args.main_jobs))
-    if args.note:
-        raw["notes"] = list(args.note)
-    if args.main_jobs or args.note:
+    notes = list(args.note)
+    if args.notes_file:
+        notes += [par.strip() for par in args.notes_file.read_text().split("\n\n") if par.strip()]
+    if notes:
+        raw["notes"] = notes
+    if args.main_jobs or notes:
         Path(args.raw or common.raw_path(NAME, args.quick)).write_text(json.dumps(raw, indent=1, default=str))
     common.finish(args, NAME, report(raw, info, common.command(NAME, argv), args.quick))
     return 0

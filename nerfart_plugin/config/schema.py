@@ -481,8 +481,9 @@ class RunConfig(Section):
     compile: Literal["auto", "on", "off"] = Setting(
         "auto", description="evaluate the fields through torch.compile (kernels cached on disk across runs): on | "
         "off | auto (on where a compiler is available and the work pays for the compile: reconstructions of 2000 "
-        "steps or more, stylizations of 50 or more, videos of 60 frames or more, the web viewer); results equal to "
-        "float rounding", changes_results=False)
+        "steps or more, stylizations of 50 or more, videos of 60 frames or more, the web viewer; shorter work on a "
+        "CPU still takes the grid's fused lookup kernel); off: PyTorch's own kernels only; results equal to float "
+        "rounding", changes_results=False)
     lock_timeout: Optional[Float] = Setting(None, ge=0.0, le=1e7, description="seconds to wait for a run folder "
                                             "that another process holds; 0: stop at once; null: wait until it ends",
                                             changes_results=False)
