@@ -148,3 +148,27 @@ def test_short_work_stays_uncompiled_but_takes_the_fused_lookups() -> None:
     assert compiled_mod.apply_compile(r, "auto", cpu, least, least) == "on" and r.field.encoding.fused
     freq = VolumeRenderer(build_field({"name": "nerf", **SMALL}, FREQUENCY, bound=1.0), num_samples=8)
     assert compiled_mod.apply_compile(freq, "auto", cpu, 10, least) == f"off (10 steps < {least}: the compile would not pay)"
+
+
+@needs_compiler
+def test_the_compiled_occupancy_sampler_places_the_same_sections() -> None:
+    """With the fields compiled, the occupancy grid's lookups along the rays and the sections it places run
+    compiled too (``set_compiled`` sets the grid's flag): the same cells, sections equal to float rounding."""
+    from nerfart_plugin.fields.occupancy import OccupancyGrid
+    from nerfart_plugin.rendering import occupancy_samples
+
+    torch.manual_seed(0)
+    grid = OccupancyGrid(resolution=24, bound=1.0)
+    grid.occupied.copy_(torch.rand(grid.occupied.shape) > 0.7)
+    r = VolumeRenderer(build_field({"name": "volsdf", **SMALL}, GRID, bound=1.0), num_samples=16, occupancy=grid)
+    b = _batch(57, seed=4)
+    b["rays_o"][:5] += torch.tensor([6.0, 0.0, 0.0])  # rays that miss the box
+    eager = [occupancy_samples(b["rays_o"], b["rays_d"], b["near"], b["far"], grid, 16, 96, dilate=d) for d in (0, 2)]
+    assert set_compiled(r) == 1 and grid.compiled
+    t = torch.rand(57, 40, generator=torch.Generator().manual_seed(1)) * 4
+    assert torch.equal(grid.query_rays(b["rays_o"], b["rays_d"], t), grid.at(grid.ray_cells(b["rays_o"], b["rays_d"], t)))
+    for d, ref in zip((0, 2), eager):
+        out = occupancy_samples(b["rays_o"], b["rays_d"], b["near"], b["far"], grid, 16, 96, dilate=d)
+        torch.testing.assert_close(out, ref, rtol=1e-5, atol=1e-5)
+    set_compiled(r, False)
+    assert not grid.compiled

@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from nerfart_plugin.errors import ConfigError
 from nerfart_plugin.fields.field import Field
+from nerfart_plugin.fields.occupancy import OccupancyGrid
 
 log = logging.getLogger("nerfart_plugin")
 
@@ -120,6 +121,9 @@ def set_compiled(module: nn.Module, on: bool = True) -> int:
     for f in fields:
         f.compiled = on
         use_fused_kernels(f, on)
+    for m in module.modules():  # the occupancy grid's lookups along the rays (the sampler's share of a render)
+        if isinstance(m, OccupancyGrid):
+            m.compiled = on and bool(fields)
     return len(fields)
 
 

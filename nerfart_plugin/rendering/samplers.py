@@ -15,10 +15,13 @@ drives CUDA rendering deterministically.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional
+import logging
+from typing import TYPE_CHECKING, Any, Optional
 
 import torch
 from torch import Tensor
+
+log = logging.getLogger("nerfart_plugin")
 
 if TYPE_CHECKING:  # pragma: no cover
     from nerfart_plugin.fields.occupancy import OccupancyGrid
@@ -145,6 +148,20 @@ def occupancy_samples(
     coarse = stratified_edges(near, far, M, perturb=False)  # [R,M+1]
     mids = 0.5 * (coarse[:, :-1] + coarse[:, 1:])
     occ = occupancy.query_rays(rays_o, rays_d, mids).float()
+    u_edges = stratified_edges(torch.zeros(R, device=rays_o.device), torch.ones(R, device=rays_o.device),
+                               num_samples, perturb, generator)
+    if occupancy.compiled and R > 1:
+        try:
+            return _compiled_sections()(coarse, occ, u_edges, int(dilate))
+        except torch._dynamo.exc.TorchDynamoException as exc:  # the compiler's own failure: eager from now on
+            occupancy.compiled = False
+            log.warning("compile: the occupancy sampler runs uncompiled: the compiler failed (%s)", type(exc).__name__)
+    return _occupied_sections(coarse, occ, u_edges, int(dilate))
+
+
+def _occupied_sections(coarse: Tensor, occ: Tensor, u_edges: Tensor, dilate: int) -> Tensor:
+    """Steps 1-3 of :func:`occupancy_samples` from the coarse bins ``coarse`` [R,M+1], their occupancy ``occ``
+    [R,M] (0/1) and the stratified ``u_edges`` [R,K+1] -> t_samples [R,K,2]."""
     if dilate > 0:
         occ = torch.nn.functional.max_pool1d(occ[:, None], 2 * dilate + 1, stride=1, padding=dilate)[:, 0]
     widths = coarse[:, 1:] - coarse[:, :-1]
@@ -152,10 +169,7 @@ def occupancy_samples(
     weights = torch.where(hit[:, None], occ, torch.ones_like(occ)) * widths  # mass of each bin
     mass = weights.sum(-1, keepdim=True)  # L_occ (or far-near for the fallback)
     cdf = torch.cat([torch.zeros_like(mass), torch.cumsum(weights, -1)], -1) / mass.clamp_min(1e-12)
-    cdf[:, -1] = 1.0
-    cdf = cdf.clamp(max=1.0)
-    u_edges = stratified_edges(torch.zeros(R, device=rays_o.device), torch.ones(R, device=rays_o.device),
-                               num_samples, perturb, generator)
+    cdf = torch.cat([cdf[:, :-1], torch.ones_like(mass)], -1).clamp(max=1.0)
     u_mid = 0.5 * (u_edges[:, :-1] + u_edges[:, 1:])
     centre = _invert_cdf(coarse, cdf, u_mid)
     length = (u_edges[:, 1:] - u_edges[:, :-1]) * mass * hit[:, None].float()
@@ -271,3 +285,15 @@ def weighted_samples(
     u = stratified_edges(torch.zeros(R, device=rays_o.device), torch.ones(R, device=rays_o.device),
                          num_samples, perturb, generator)  # [R,K+1]
     return _sections(coarse, mass, occ_len, u)
+
+
+_COMPILED_SECTIONS: Optional[Any] = None
+
+
+def _compiled_sections() -> Any:
+    """:func:`_occupied_sections` through ``torch.compile`` (dynamic shapes), made once: the sampler's share of a
+    compiled render (``compile``; the occupancy grid's ``compiled`` flag selects it)."""
+    global _COMPILED_SECTIONS
+    if _COMPILED_SECTIONS is None:
+        _COMPILED_SECTIONS = torch.compile(_occupied_sections, dynamic=True)
+    return _COMPILED_SECTIONS
