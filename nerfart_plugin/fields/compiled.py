@@ -6,7 +6,8 @@ work (the softplus, the concatenations, the sigmoid, the finite-difference taps)
 BLAS's. The TensorVM grid's lookups, which the compiler would decompose into slower gathers, run on a CPU as a
 fused kernel of this package (:mod:`nerfart_plugin.fields.fused_grid`, one pass per point forward, a
 plane-by-plane scatter backward, called from inside the compiled graph) and elsewhere (CUDA) as ATen's
-``grid_sample`` (``encodings._grid_lookup``).
+``grid_sample`` (``encodings._grid_lookup``). With the fields, the occupancy grid's lookups along the rays and
+the sampler's sections are compiled too (``OccupancyGrid.compiled``): the sampler's share of a render.
 
 Callers evaluate a field through :func:`evaluate` (the renderer and the composite field do): a field whose
 ``compiled`` flag is set runs the compiled query, others their own. A compile that fails (a custom field the
