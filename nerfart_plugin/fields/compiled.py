@@ -135,7 +135,7 @@ def use_fused_kernels(module: nn.Module, on: bool = True) -> int:
     for m in module.modules():
         if hasattr(m, "set_fused"):
             m.set_fused(on)
-            count += int(bool(getattr(m, "fused", False)) and on)
+            count += int(m.fused)
     return count
 
 
@@ -150,8 +150,8 @@ def apply_compile(module: nn.Module, setting: str, device: torch.device, work: O
         choice = "off (no field here can be compiled: an analytic SDF gradient stays eager)"
     if not on:
         set_compiled(module, False)
-        if setting != "off" and device.type == "cpu" and compiler_missing(device) is None and \
-                use_fused_kernels(module, True):
+        # no compiler: decide_compile has said so already (and the kernel's loader would warn again)
+        if setting != "off" and compiler_missing(device) is None and use_fused_kernels(module, True):
             choice += "; grid lookups fused"
     return choice
 

@@ -191,16 +191,16 @@ class TensorVMGridEncoding(Encoding):
     _PLANE_AXES = ((0, 1), (0, 2), (1, 2))
     _LINE_AXES = (2, 1, 0)
 
-    #: look up through the fused CPU kernel where it serves (:mod:`nerfart_plugin.fields.fused_grid`); set with
-    #: :meth:`set_fused` (the ``compile`` setting does)
+    #: look up through the fused CPU kernel (:mod:`nerfart_plugin.fields.fused_grid`) for the points it serves;
+    #: set by :meth:`set_fused` (the ``compile`` setting calls it)
     fused: bool = False
 
     def set_fused(self, on: bool) -> None:
-        """Use the fused lookup kernel (where it serves the points) or ATen's ``grid_sample``. On a CPU with the
-        kernel built, the planes and lines are then stored channels-last, the kernel's layout (same shapes and
-        values; checkpoints unchanged)."""
-        self.fused = bool(on)
-        if on and self.planes[0].device.type == "cpu" and fused_grid.load() is not None:  # built once per machine
+        """Use the fused lookup kernel or ATen's ``grid_sample``: on where asked, the planes on a CPU and the kernel
+        built (once per machine), and then the planes and lines are stored channels-last, the kernel's layout
+        (same shapes and values; checkpoints unchanged). :attr:`fused` says which it is."""
+        self.fused = bool(on) and self.planes[0].device.type == "cpu" and fused_grid.load() is not None
+        if self.fused:
             for p in (*self.planes, *self.lines):
                 if not p.is_contiguous(memory_format=torch.channels_last):
                     p.data = p.data.contiguous(memory_format=torch.channels_last)
@@ -211,7 +211,7 @@ class TensorVMGridEncoding(Encoding):
         dtype = self.planes[0].dtype
         xn = xn.to(dtype)
         if self.fused and fused_grid.serves(xn):
-            views = [fused_grid.channel_last(p.to(dtype), ln.to(dtype)) for p, ln in zip(self.planes, self.lines)]
+            views = [fused_grid.channel_last(p, ln) for p, ln in zip(self.planes, self.lines)]
             out = fused_grid.tensorvm_features(xn, [v[0] for v in views], [v[1] for v in views])
             return self.basis(out) if self.basis is not None else out
         # grid_sample coords: last dim (u,v) = (W index, H index).

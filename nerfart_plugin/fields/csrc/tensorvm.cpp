@@ -1,5 +1,5 @@
 // Fused TensorVM (TensoRF vector-matrix) grid lookups on the CPU: nerfart_plugin/fields/fused_grid.py builds
-// this file into a shared library and calls it through ctypes (no PyTorch headers: it builds in about a second).
+// this file into a shared library and calls it through ctypes (no PyTorch headers: it builds in a few seconds).
 //
 // Per point n, level l (side r_l) and plane axis a (planes (x,y), (x,z), (y,z); lines z, y, x), component c:
 //     out[n, l*3C + a*C + c] = bilinear(P_la[:, :, c], x_i, x_j) * linear(L_la[:, c], x_k)
@@ -30,8 +30,6 @@ struct Lookup {  // one plane's bilinear corners and its line's linear pair: off
   T nw, ne, sw, se, ln, ls;
 };
 
-// The corners of plane axis a at point p [3] on a level of side r, components C. A corner past the last cell
-// (a coordinate of exactly 1) has weight 0; its offset is clamped to the last cell, which adds 0 x a finite value.
 // Points are clamped to [-1, 1] by the caller; a NaN coordinate is the only thing left that would index
 // outside the planes.
 template <typename T>
@@ -39,6 +37,8 @@ inline bool finite_point(const T* p) {
   return !(std::isnan(p[0]) || std::isnan(p[1]) || std::isnan(p[2]));
 }
 
+// The corners of plane axis a at point p [3] on a level of side r, components C. A corner past the last cell
+// (a coordinate of exactly 1) has weight 0; its offset is clamped to the last cell, which adds 0 x a finite value.
 template <typename T>
 inline Lookup<T> lookup(const T* p, int a, int64_t r, int C) {
   const T scale = T(r - 1) / T(2);
